@@ -1,0 +1,147 @@
+"""The `gsmn` command line: one subcommand per job.
+
+Config flags are generated from the dataclasses in gsmn.config: `--preset tiny` picks a preset and every
+leaf field can be overridden by its dotted path, e.g. `--camera.pitch-deg 30 --world.seed 1`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from gsmn.config import PRESETS, ConfigError, RunConfig, leaf_fields, preset, with_overrides
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("configuration (see gsmn/config.py)")
+    group.add_argument("--preset", choices=PRESETS, default="paper", help="named preset (default: paper)")
+    for path, hint, f in leaf_fields(RunConfig):
+        flag = "--" + path.replace("_", "-")
+        name = getattr(hint, "__name__", str(hint))
+        group.add_argument(flag, dest="cfg:" + path, metavar=name.upper(), default=None,
+                           help=f"{f.metadata.get('help', '')} (default: {f.default})")
+
+
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    overrides = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg:") and v is not None}
+    return with_overrides(preset(args.preset), overrides)
+
+
+# -- gsmn world -------------------------------------------------------------------------------------
+def cmd_world(args: argparse.Namespace) -> int:
+    from gsmn.world.spec import world_for_env
+
+    config = config_from_args(args)
+    world = world_for_env(args.env_id, config.world)
+    if args.json or not args.out:
+        print(json.dumps(world_summary(world), indent=1))
+    if args.out:
+        paths = write_world_preview(world, config, Path(args.out))
+        for p in paths:
+            print(f"wrote {p}", file=sys.stderr)
+    return 0
+
+
+def world_summary(world) -> dict:
+    """The WorldSpec as the CLI prints it: landmarks with name, noun phrase, x, y, radius; start pose."""
+    return {
+        "env_id": world.env_id,
+        "split": world.split,
+        "field_size": world.field_size,
+        "landmarks": [{"name": lm.model, "noun_phrase": lm.noun_phrase, "class_id": lm.class_id,
+                       "x": round(lm.x, 4), "y": round(lm.y, 4), "radius": round(lm.radius, 4),
+                       "yaw": round(lm.yaw, 4), "scale": round(lm.scale, 4)} for lm in world.landmarks],
+        "lakes": [{"x": round(lk.x, 4), "y": round(lk.y, 4), "radius_x": round(lk.radius_x, 4),
+                   "radius_y": round(lk.radius_y, 4), "yaw": round(lk.yaw, 4)} for lk in world.lakes],
+        "start": {"corner": world.start_corner, "x": world.start_x, "y": world.start_y,
+                  "yaw": round(world.start_yaw, 6)},
+    }
+
+
+def write_world_preview(world, config: RunConfig, out: Path) -> list[Path]:
+    """The first camera image and an annotated top-down view of a world, as PNGs."""
+    from PIL import Image, ImageDraw
+
+    from gsmn.world.sim import Simulator, topdown_extent, topdown_pixel
+
+    out.mkdir(parents=True, exist_ok=True)
+    sim = Simulator(world, config)
+    try:
+        fpv = Image.fromarray(sim.render())
+        size = 768
+        top = Image.fromarray(sim.render_topdown(size))
+    finally:
+        sim.close()
+    draw = ImageDraw.Draw(top)
+    for lm in world.landmarks:
+        u, v = topdown_pixel(world, lm.x, lm.y, size)
+        r = lm.radius / topdown_extent(world) * size
+        draw.ellipse([u - r, v - r, u + r, v + r], outline=(255, 255, 255))
+        draw.text((u - r, v + r + 2), lm.noun_phrase, fill=(255, 255, 255), stroke_width=2, stroke_fill=(0, 0, 0))
+    su, sv = topdown_pixel(world, world.start_x, world.start_y, size)
+    draw.text((min(su, size - 60), min(sv, size - 16)), "start", fill=(255, 255, 0), stroke_width=2,
+              stroke_fill=(0, 0, 0))
+    paths = [out / f"env_{world.env_id}_camera.png", out / f"env_{world.env_id}_topdown.png"]
+    fpv.save(paths[0])
+    top.save(paths[1])
+    return paths
+
+
+# -- gsmn serve ------------------------------------------------------------------------------------
+def cmd_serve(args: argparse.Namespace) -> int:
+    import time
+
+    from app.preview import Preview
+
+    config = config_from_args(args)
+    preview = Preview(config, host=args.host, port=args.port, env_id=args.env_id)
+    print(f"gsmn world preview: {preview.url}  (Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        preview.close()
+    return 0
+
+
+# -- entry point ------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gsmn", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("world", help="print a world as JSON and/or write its first camera image and top-down view")
+    p.add_argument("--env-id", type=int, required=True, help="environment id (id %% 100: 0-69 train, 70-84 test, "
+                   "85-99 dev)")
+    p.add_argument("--json", action="store_true", help="print the WorldSpec as JSON (default when no --out)")
+    p.add_argument("--out", type=str, default=None, help="folder to write the PNGs into")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_world)
+
+    p = sub.add_parser("serve", help="serve the browser view (for now a world preview; the dashboard later)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")
+    p.add_argument("--port", type=int, default=8080, help="viser port (the next free one is used if taken)")
+    p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_serve)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ConfigError, ValueError, FileNotFoundError) as e:
+        print(f"gsmn {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # output piped into `head` and the like
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,339 @@
+"""MuJoCo model of a WorldSpec: field, landmarks, lakes, and a quadcopter with a forward camera.
+
+The quadcopter is a free rigid body (1 kg) moved only by a thrust force along its body z axis and three
+body torques. A cascaded controller (`DroneController`, run at every physics step) turns the policy's
+command (forward velocity, yaw rate) into those four inputs: velocity loop -> desired tilt and thrust,
+altitude loop -> thrust, attitude loop -> roll/pitch torques, yaw-rate loop -> yaw torque. This stands in
+for AirSim's flight controller in the paper ("velocity commands to the flight controller in its local
+reference frame"). Contacts are disabled: the drone flies at a fixed altitude and landmarks are scenery;
+there is no aerodynamic drag.
+
+The forward camera sits on an ideal two-axis gimbal, as on camera drones: it follows the drone's position
+and heading, but its roll stays level and its pitch fixed (27 deg down), so the far field stays in view
+while the drone tilts to accelerate. Its exact pose is exposed either way.
+
+Camera conventions. MuJoCo cameras look along their -z with +y up. Everything this module exposes uses the
+computer-vision convention instead: camera x right, y down, z forward, and pixel (u, v) with the centre
+of the top-left pixel at (0.5, 0.5), so K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]] with f = (W/2)/tan(HFOV/2).
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco  # gsmn/__init__.py has set MUJOCO_GL=egl before this import
+import numpy as np
+
+from gsmn.config import CameraConfig, DroneConfig, RunConfig
+from gsmn.world.assets import AssetModel, load_catalogue
+from gsmn.world.spec import WorldSpec
+
+GRAVITY = 9.81
+FPV_CAMERA = "fpv"
+TOPDOWN_CAMERA = "topdown"
+# MuJoCo camera frame (x right, y up, looking along -z) -> computer-vision frame (x right, y down, z forward).
+R_GL_CV = np.diag([1.0, -1.0, -1.0])
+
+_BASE_XML = """
+<mujoco model="gsmn_world">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="{dt}" gravity="0 0 -{g}" integrator="RK4">
+    <flag contact="disable"/>
+  </option>
+  <visual>
+    <quality shadowsize="{shadow_size}" offsamples="{offsamples}"/>
+    <global offwidth="{offwidth}" offheight="{offheight}"/>
+    <headlight ambient="0.35 0.35 0.35" diffuse="0.25 0.25 0.25" specular="0 0 0"/>
+    <map znear="0.02" zfar="200"/>
+  </visual>
+  <asset>
+    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.55 0.72 0.92" rgb2="0.92 0.95 1.0"
+             width="256" height="256"/>
+    <texture name="grass" type="2d" builtin="checker" rgb1="0.36 0.58 0.25" rgb2="0.33 0.55 0.23"
+             width="64" height="64"/>
+    <material name="field" texture="grass" texrepeat="10 10" specular="0" shininess="0" reflectance="0"/>
+    <material name="outside" rgba="0.52 0.50 0.38 1" specular="0" reflectance="0"/>
+    <material name="water" rgba="0.20 0.42 0.75 1" specular="0.3" shininess="0.6"/>
+  </asset>
+  <worldbody>
+    <light name="sun" directional="true" pos="0 0 30" dir="0.35 0.25 -1" diffuse="0.75 0.75 0.72"
+           specular="0.1 0.1 0.1" castshadow="{shadows}"/>
+    <geom name="outside" type="plane" size="{outside} {outside} 0.1" pos="{half} {half} -0.02"
+          material="outside"/>
+    <geom name="field" type="plane" size="{half} {half} 0.1" pos="{half} {half} 0" material="field"/>
+    <camera name="{topdown}" mode="fixed" pos="{half} {half} 60" xyaxes="1 0 0 0 1 0"
+            projection="orthographic" fovy="{topdown_extent}"/>
+    <body name="drone" pos="0 0 {altitude}">
+      <freejoint name="drone"/>
+      <inertial pos="0 0 0" mass="{mass}" diaginertia="{ixx} {ixx} {izz}"/>
+      <site name="imu" pos="0 0 0" size="0.01"/>
+      <geom name="hull" type="box" size="0.09 0.06 0.03" rgba="0.15 0.15 0.17 1" mass="0"/>
+      <geom name="nose" type="box" size="0.03 0.04 0.02" pos="0.1 0 0" rgba="0.9 0.3 0.1 1" mass="0"/>
+      {arms}
+    </body>
+    <body name="gimbal" mocap="true" pos="0 0 {altitude}">
+      <camera name="{fpv}" pos="{cam_forward} 0 0" xyaxes="0 -1 0 {sp} 0 {cp}" fovy="{fovy}"/>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="thrust" site="imu" gear="0 0 1 0 0 0" ctrlrange="0 {max_thrust}"/>
+    <motor name="roll" site="imu" gear="0 0 0 1 0 0" ctrlrange="-5 5"/>
+    <motor name="pitch" site="imu" gear="0 0 0 0 1 0" ctrlrange="-5 5"/>
+    <motor name="yaw" site="imu" gear="0 0 0 0 0 1" ctrlrange="-5 5"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def _arms_xml(arm: float) -> str:
+    parts = []
+    for k in range(4):
+        a = math.pi / 4 + k * math.pi / 2
+        x, y = arm * math.cos(a), arm * math.sin(a)
+        parts.append(f'<geom type="capsule" fromto="0 0 0 {x:.4f} {y:.4f} 0" size="0.012" '
+                     f'rgba="0.2 0.2 0.22 1" mass="0"/>')
+        parts.append(f'<geom type="cylinder" pos="{x:.4f} {y:.4f} 0.025" size="0.07 0.004" '
+                     f'rgba="0.75 0.78 0.8 0.6" mass="0"/>')
+    return "\n      ".join(parts)
+
+
+def intrinsics(camera: CameraConfig) -> np.ndarray:
+    """Pinhole intrinsics K (3, 3) of the forward camera, principal point at the image centre."""
+    f = camera.focal
+    return np.array([[f, 0.0, camera.width / 2], [0.0, f, camera.height / 2], [0.0, 0.0, 1.0]])
+
+
+def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel, ...] | None = None
+               ) -> mujoco.MjSpec:
+    """An MjSpec of the world: base scene and drone from XML, then landmark meshes and lakes added."""
+    catalogue = catalogue or load_catalogue()
+    by_name = {m.name: m for m in catalogue}
+    drone, cam = config.drone, config.camera
+    half = world.field_size / 2
+    pitch = math.radians(cam.pitch_deg)
+    # Inertia of a 1 kg quadrotor frame scaled with the arm length (a flat cross plus a central box).
+    ixx = 0.25 * drone.mass * drone.arm_length**2
+    xml = _BASE_XML.format(
+        dt=drone.physics_dt, g=GRAVITY, shadow_size=cam.shadow_size, offsamples=4 if cam.msaa else 0,
+        offwidth=max(1024, cam.width), offheight=max(1024, cam.height), shadows=str(cam.shadows).lower(),
+        half=half, outside=4 * world.field_size, topdown=TOPDOWN_CAMERA, topdown_extent=topdown_extent(world),
+        altitude=drone.altitude, mass=drone.mass, ixx=ixx, izz=2 * ixx, arms=_arms_xml(drone.arm_length),
+        fpv=FPV_CAMERA, cam_forward=cam.forward_offset, sp=math.sin(pitch), cp=math.cos(pitch),
+        fovy=cam.vfov_deg, max_thrust=3 * drone.mass * GRAVITY)
+    spec = mujoco.MjSpec.from_string(xml)
+    for i, lm in enumerate(world.landmarks):
+        model = by_name[lm.model]
+        body = spec.worldbody.add_body(name=f"landmark_{i}", pos=[lm.x, lm.y, 0.0],
+                                       quat=_yaw_quat(lm.yaw))
+        for k, part in enumerate(model.parts):
+            mesh = spec.add_mesh(name=f"landmark_{i}_part_{k}")
+            mesh.uservert = part.vertices.ravel().tolist()
+            mesh.userface = part.faces.ravel().tolist()
+            mesh.scale = [lm.scale] * 3
+            mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # scenery: never simulated
+            body.add_geom(name=f"landmark_{i}_geom_{k}", type=mujoco.mjtGeom.mjGEOM_MESH,
+                          meshname=mesh.name, rgba=list(part.rgba), contype=0, conaffinity=0)
+    for i, lake in enumerate(world.lakes):
+        spec.worldbody.add_geom(name=f"lake_{i}", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+                                size=[lake.radius_x, lake.radius_y, 0.015], pos=[lake.x, lake.y, 0.0],
+                                quat=_yaw_quat(lake.yaw), material="water", contype=0, conaffinity=0)
+    return spec
+
+
+def _yaw_quat(yaw: float) -> list[float]:
+    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+
+
+def topdown_extent(world: WorldSpec) -> float:
+    """Side (m) of the square the orthographic top-down camera sees: the field plus a 1 m border."""
+    return world.field_size + 2
+
+
+def topdown_pixel(world: WorldSpec, x: float, y: float, size: int) -> tuple[float, float]:
+    """Pixel (u, v) of world point (x, y) in `Simulator.render_topdown(size)`; north (+y) is up."""
+    extent, half = topdown_extent(world), world.field_size / 2
+    return ((x - half) / extent + 0.5) * size, (0.5 - (y - half) / extent) * size
+
+
+def quat_to_R(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a MuJoCo quaternion (w, x, y, z)."""
+    R = np.empty(9)
+    mujoco.mju_quat2Mat(R, np.asarray(quat, dtype=float))
+    return R.reshape(3, 3)
+
+
+def yaw_of(R_world_body: np.ndarray) -> float:
+    return math.atan2(R_world_body[1, 0], R_world_body[0, 0])
+
+
+class DroneController:
+    """Cascaded controller: (forward velocity, yaw rate) command -> (thrust, roll, pitch, yaw torques).
+
+    Outer loops (velocity in the heading frame, altitude) give a desired thrust vector; its direction is
+    the desired body z axis, tracked by a PD attitude loop; yaw rate is tracked by a P loop on the body
+    rate. Gains are in units of the loop's natural dynamics and scaled by the body's mass and inertia.
+    """
+
+    def __init__(self, config: DroneConfig, inertia: np.ndarray):
+        self.config = config
+        self.inertia = np.asarray(inertia, dtype=float)  # principal moments (3,)
+        self.max_tilt_acc = GRAVITY * math.tan(math.radians(config.max_tilt_deg))
+
+    def __call__(self, qpos: np.ndarray, qvel: np.ndarray, v_cmd: float, omega_cmd: float) -> np.ndarray:
+        c = self.config
+        R = quat_to_R(qpos[3:7])  # R_world_body
+        yaw = yaw_of(R)
+        fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+        v_world = qvel[0:3]
+        omega_body = qvel[3:6]
+        # Velocity loop in the heading frame: no lateral velocity is ever commanded. The heading frame turns
+        # at the yaw rate, so holding v_cmd along it needs the centripetal acceleration omega * v_cmd.
+        yaw_rate = float(R[2] @ omega_body)
+        a_fwd = np.clip(c.velocity_gain * (v_cmd - v_world @ fwd), -self.max_tilt_acc, self.max_tilt_acc)
+        a_left = np.clip(c.velocity_gain * (0.0 - v_world @ left) + yaw_rate * v_cmd,
+                         -self.max_tilt_acc, self.max_tilt_acc)
+        a_up = c.altitude_kp * (c.altitude - qpos[2]) - c.altitude_kd * v_world[2]
+        thrust_world = c.mass * (a_fwd * fwd + a_left * left + np.array([0.0, 0.0, GRAVITY + a_up]))
+        z_body = R[:, 2]
+        thrust = max(0.0, float(thrust_world @ z_body))
+        # Attitude loop: rotate the body z axis onto the desired thrust direction, while the body turns
+        # at the commanded world yaw rate. Rates are damped relative to that reference rotation (so a
+        # steady banked turn needs no correcting torque), and the gyroscopic term is fed forward.
+        z_des = thrust_world / np.linalg.norm(thrust_world)
+        err_body = R.T @ np.cross(z_body, z_des)
+        omega_ref_body = R.T @ np.array([0.0, 0.0, omega_cmd])
+        rate_err = omega_ref_body - omega_body
+        torque = self.inertia * np.array([c.attitude_kp * err_body[0] + c.attitude_kd * rate_err[0],
+                                          c.attitude_kp * err_body[1] + c.attitude_kd * rate_err[1],
+                                          c.yaw_rate_gain * rate_err[2]])
+        torque += np.cross(omega_body, self.inertia * omega_body)
+        return np.array([thrust, torque[0], torque[1], torque[2]])
+
+
+class Simulator:
+    """Owns one compiled world, its physics state, and the renderer."""
+
+    def __init__(self, world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel, ...] | None = None):
+        self.world = world
+        self.config = config
+        self.model = build_spec(world, config, catalogue).compile()
+        self.data = mujoco.MjData(self.model)
+        self._drone_body = self.model.body("drone").id
+        self._fpv = self.model.camera(FPV_CAMERA).id
+        self._gimbal = self.model.body("gimbal").mocapid[0]
+        self.controller = DroneController(config.drone, self.model.body_inertia[self._drone_body])
+        self.K = intrinsics(config.camera)
+        self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
+        self.reset()
+
+    # -- state -------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        w, c = self.world, self.config.drone
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[0:3] = [w.start_x, w.start_y, c.altitude]
+        self.data.qpos[3:7] = _yaw_quat(w.start_yaw)
+        self._settle()
+
+    def _settle(self) -> None:
+        """Move the gimbal to the drone and recompute kinematics, so that poses, camera and rendering all
+        reflect the current state (after mj_step, MuJoCo's kinematic quantities lag qpos by one step)."""
+        d = self.data
+        d.mocap_pos[self._gimbal] = d.qpos[0:3]
+        d.mocap_quat[self._gimbal] = _yaw_quat(self.yaw)
+        mujoco.mj_forward(self.model, d)
+
+    def step(self, forward_velocity: float, yaw_rate: float) -> None:
+        """Hold one (clipped) command for 1 / control_hz seconds of physics."""
+        c = self.config.drone
+        v = float(np.clip(forward_velocity, 0.0, c.max_forward_velocity))  # no reversing
+        w = float(np.clip(yaw_rate, -c.max_yaw_rate, c.max_yaw_rate))
+        m, d = self.model, self.data
+        for _ in range(c.substeps):
+            d.ctrl[:] = self.controller(d.qpos, d.qvel, v, w)
+            mujoco.mj_step(m, d)
+        self._settle()
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.data.qpos[0:3].copy()
+
+    @property
+    def R_world_body(self) -> np.ndarray:
+        return quat_to_R(self.data.qpos[3:7])
+
+    @property
+    def yaw(self) -> float:
+        return yaw_of(self.R_world_body)
+
+    @property
+    def velocity_world(self) -> np.ndarray:
+        return self.data.qvel[0:3].copy()
+
+    @property
+    def yaw_rate(self) -> float:
+        """Angular velocity about the world z axis (rad/s)."""
+        return float((self.R_world_body @ self.data.qvel[3:6])[2])
+
+    @property
+    def T_world_camera(self) -> np.ndarray:
+        """Pose (4, 4) of the forward camera in the computer-vision convention (x right, y down, z fwd)."""
+        T = np.eye(4)
+        T[:3, :3] = self.data.cam_xmat[self._fpv].reshape(3, 3) @ R_GL_CV
+        T[:3, 3] = self.data.cam_xpos[self._fpv]
+        return T
+
+    # -- rendering ---------------------------------------------------------------------------------
+    def _get_renderer(self, height: int, width: int) -> mujoco.Renderer:
+        r = self._renderers.get((height, width))
+        if r is None:
+            r = self._renderers[(height, width)] = mujoco.Renderer(self.model, height, width)
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.config.camera.shadows
+        return r
+
+    def render(self) -> np.ndarray:
+        """The forward camera image (H, W, 3) uint8, top row first."""
+        cam = self.config.camera
+        r = self._get_renderer(cam.height, cam.width)
+        r.update_scene(self.data, camera=self._fpv)
+        return r.render()
+
+    def render_segmentation(self) -> np.ndarray:
+        """Per-pixel MuJoCo geom id (H, W) int of the forward camera (-1 for the sky)."""
+        cam = self.config.camera
+        r = self._get_renderer(cam.height, cam.width)
+        r.enable_segmentation_rendering()
+        try:
+            r.update_scene(self.data, camera=self._fpv)
+            seg = r.render()
+        finally:
+            r.disable_segmentation_rendering()
+        return np.where(seg[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, seg[..., 0], -1)
+
+    def render_topdown(self, size: int = 512) -> np.ndarray:
+        """An orthographic view straight down on the field (size, size, 3) uint8; north (+y) up."""
+        r = self._get_renderer(size, size)
+        r.update_scene(self.data, camera=TOPDOWN_CAMERA)
+        return r.render()
+
+    def landmark_of_geom(self, geom_id: int) -> int | None:
+        """Index into world.landmarks of the landmark a geom belongs to, or None."""
+        if geom_id < 0:
+            return None
+        name = self.model.body(self.model.geom_bodyid[geom_id]).name
+        return int(name.split("_")[1]) if name.startswith("landmark_") else None
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()
+
+    def __del__(self) -> None:  # best effort: free the GL context
+        try:
+            self.close()
+        except Exception:
+            pass
