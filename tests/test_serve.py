@@ -1,0 +1,40 @@
+"""`gsmn serve` (the README's main command) starts a real server that prints its URL and serves the page."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+
+def test_serve_prints_its_url_and_serves_the_page():
+    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--port", "8391", "--preset", "tiny"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        deadline = time.monotonic() + 60
+        url = None
+        lines = []
+        while time.monotonic() < deadline and url is None:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"(http://127\.0\.0\.1:\d+)", line)
+            url = m.group(1) if m else None
+        assert url, "".join(lines)
+        with urllib.request.urlopen(url, timeout=10) as response:
+            assert response.status == 200
+            assert b"<html" in response.read().lower()
+        assert proc.poll() is None, "server exited"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
