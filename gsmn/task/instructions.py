@@ -1,0 +1,159 @@
+"""Instructions and their goals (paper: Data).
+
+Each environment gets one instruction "go to the {side} side of the {noun phrase}": a landmark of the world
+and one of four sides, both uniform, redrawn until the goal is more than 6 m (and less than 60 m) from the
+start. The goal lies at the landmark's scaled radius on that side, where sides are taken as seen from the
+start: with theta0 the direction from the landmark back toward the start,
+
+    front = theta0, back = theta0 + pi, left = theta0 - pi/2, right = theta0 + pi/2.
+
+Handedness: looking from the start at the landmark means facing theta0 + pi; the viewer's left is a
+counter-clockwise quarter turn from there (x east, y north, z up), theta0 + 3pi/2 = theta0 - pi/2.
+`gsmn.task.metrics.side_of` uses the same convention, so each goal sits on its quadrant's bisector.
+
+Departures: the paper's figures write "... side of fir tree" without "the" before the noun phrase; we write
+"the" and `parse_instruction` accepts either. We also redraw instructions whose goal lies outside the field
+(`TaskConfig.goal_in_field`): their demonstration would leave the field, which the original rejects.
+
+`parse_instruction` turns free text from the dashboard into an `Instruction` for a given world, with error
+messages meant for users.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from gsmn.config import TaskConfig
+from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.spec import WorldSpec
+
+SIDES = ("left", "right", "front", "back")
+TEMPLATE = "go to the {side} side of the {noun_phrase}"
+
+# Angle of each side's goal relative to theta0 (direction from the landmark toward the start).
+_SIDE_OFFSET = {"front": 0.0, "back": math.pi, "left": -math.pi / 2, "right": math.pi / 2}
+
+
+class InstructionError(ValueError):
+    """An instruction cannot be made or understood; the message is meant for users."""
+
+
+@dataclass(frozen=True)
+class Instruction:
+    text: str
+    landmark_index: int  # into world.landmarks
+    noun_phrase: str
+    side: str
+    goal_x: float
+    goal_y: float
+    ambiguous: bool  # the noun phrase names more than one landmark of this world
+
+    @property
+    def goal(self) -> np.ndarray:
+        return np.array([self.goal_x, self.goal_y])
+
+
+def tokenize(text: str) -> list[str]:
+    """Punctuation to spaces, lower case, split on whitespace (as the original)."""
+    return re.sub(r"[^\w\s]|_", " ", text).lower().split()
+
+
+NOUN_PHRASES: tuple[str, ...] = tuple(sorted({m.noun_phrase for m in CATALOGUE}))
+VOCABULARY: tuple[str, ...] = tuple(sorted(
+    set(tokenize(TEMPLATE.format(side="", noun_phrase=""))) | set(SIDES)
+    | {w for phrase in NOUN_PHRASES for w in tokenize(phrase)}))
+
+
+def goal_position(world: WorldSpec, landmark_index: int, side: str) -> np.ndarray:
+    """The goal at the landmark's scaled radius on `side`, as seen from the start. Shape (2,)."""
+    if side not in SIDES:
+        raise InstructionError(f"unknown side {side!r}; choose from {', '.join(SIDES)}")
+    lm = world.landmarks[landmark_index]
+    theta0 = math.atan2(world.start_y - lm.y, world.start_x - lm.x)
+    theta = theta0 + _SIDE_OFFSET[side]
+    return np.array([lm.x + lm.radius * math.cos(theta), lm.y + lm.radius * math.sin(theta)])
+
+
+def make_instruction(world: WorldSpec, landmark_index: int, side: str) -> Instruction:
+    lm = world.landmarks[landmark_index]
+    goal = goal_position(world, landmark_index, side)
+    return Instruction(text=TEMPLATE.format(side=side, noun_phrase=lm.noun_phrase), landmark_index=landmark_index,
+                       noun_phrase=lm.noun_phrase, side=side, goal_x=float(goal[0]), goal_y=float(goal[1]),
+                       ambiguous=len(world.landmarks_named(lm.noun_phrase)) > 1)
+
+
+def acceptable(world: WorldSpec, instruction: Instruction, config: TaskConfig) -> bool:
+    """The sampling rule: 6 m < |goal - start| < 60 m (and, by default, the goal inside the field)."""
+    d = math.dist((instruction.goal_x, instruction.goal_y), (world.start_x, world.start_y))
+    inside = 0.0 <= instruction.goal_x <= world.field_size and 0.0 <= instruction.goal_y <= world.field_size
+    return config.min_goal_distance < d < config.max_goal_distance and (inside or not config.goal_in_field)
+
+
+def sample_instruction(world: WorldSpec, rng: np.random.Generator, config: TaskConfig | None = None
+                       ) -> Instruction:
+    """Draw a landmark and a side uniformly until the goal is acceptable."""
+    config = config or TaskConfig()
+    for _ in range(config.instruction_draws):
+        index = int(rng.integers(len(world.landmarks)))
+        side = SIDES[int(rng.integers(len(SIDES)))]
+        instruction = make_instruction(world, index, side)
+        if acceptable(world, instruction, config):
+            return instruction
+    raise InstructionError(f"no acceptable instruction in environment {world.env_id} after "
+                           f"{config.instruction_draws} draws")
+
+
+def rng_for_instruction(env_id: int, seed: int = 0) -> np.random.Generator:
+    """A stream apart from the world's (SeedSequence([seed, env_id]))."""
+    return np.random.default_rng(np.random.SeedSequence([seed, env_id, 1]))
+
+
+def instruction_for_env(world: WorldSpec, config: TaskConfig | None = None) -> Instruction:
+    """The instruction of an environment: deterministic for (config.seed, world.env_id)."""
+    config = config or TaskConfig()
+    return sample_instruction(world, rng_for_instruction(world.env_id, config.seed), config)
+
+
+def _find(tokens: list[str], phrase: list[str]) -> bool:
+    n = len(phrase)
+    return any(tokens[i:i + n] == phrase for i in range(len(tokens) - n + 1))
+
+
+def parse_instruction(text: str, world: WorldSpec) -> Instruction:
+    """Understand free text such as "Go to the LEFT side of the red barrel!" in `world`.
+
+    Finds the side and the longest known noun phrase in the text. An ambiguous phrase (several landmarks of
+    the world share it) resolves to the first of them, with `ambiguous=True`. Raises `InstructionError`
+    with a message for users when words are unknown, no or several sides are named, or the named landmark
+    is not in this world.
+    """
+    tokens = tokenize(text)
+    in_world = sorted({lm.noun_phrase for lm in world.landmarks})
+    example = TEMPLATE.format(side="left", noun_phrase=in_world[0]) if in_world else TEMPLATE
+    if not tokens:
+        raise InstructionError(f"the instruction is empty; try e.g. \"{example}\"")
+    unknown = sorted(set(tokens) - set(VOCABULARY), key=tokens.index)
+    if unknown:
+        raise InstructionError(f"unknown word{'s' if len(unknown) > 1 else ''}: {', '.join(unknown)}. "
+                               f"Instructions look like \"{example}\"")
+    sides = [s for s in SIDES if s in tokens]
+    if not sides:
+        raise InstructionError(f"no side named: say left, right, front or back, e.g. \"{example}\"")
+    if len(sides) > 1:
+        raise InstructionError(f"several sides named ({', '.join(sides)}); name exactly one")
+    named = [p for p in NOUN_PHRASES if _find(tokens, p.split())]
+    if not named:
+        raise InstructionError(f"no landmark named; this world has: {', '.join(in_world)}")
+    # Keep the longest phrases: "red barrel" rather than the "barrel" inside it.
+    longest = [p for p in named if not any(q != p and _find(q.split(), p.split()) for q in named)]
+    if len(longest) > 1:
+        raise InstructionError(f"several landmarks named ({', '.join(longest)}); name exactly one")
+    phrase = longest[0]
+    matches = [i for i, lm in enumerate(world.landmarks) if lm.noun_phrase == phrase]
+    if not matches:
+        raise InstructionError(f"there is no {phrase} in this world; it has: {', '.join(in_world)}")
+    return make_instruction(world, matches[0], sides[0])
