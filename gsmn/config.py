@@ -111,7 +111,7 @@ class CameraConfig:
     forward_offset: float = _f(0.1, "camera position ahead of the body centre (m)")
     shadows: bool = _f(True, "render shadows")
     shadow_size: int = _f(1024, "shadow map size (MuJoCo's default 4096 costs ~70 ms a frame on CPU)")
-    msaa: bool = _f(True, "4x multisample anti-aliasing")
+    msaa: bool = _f(False, "4x multisample anti-aliasing (about +15 ms a frame on these CPUs)")
 
     def __post_init__(self) -> None:
         _check(self.width > 0 and self.height > 0, "camera size must be positive")
