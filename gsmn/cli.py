@@ -89,6 +89,55 @@ def write_world_preview(world, config: RunConfig, out: Path) -> list[Path]:
     return paths
 
 
+# -- gsmn eval / fit-avg-forward --------------------------------------------------------------------
+def _progress(total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="episode", file=sys.stderr, dynamic_ncols=True)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    import time
+
+    from gsmn.evaluation import TABLE_HEADER, env_ids_for, evaluate, results_dict, table_row, write_json
+    from gsmn.task.metrics import summarize
+
+    config = config_from_args(args)
+    env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
+    t0 = time.perf_counter()
+    with _progress(len(env_ids), args.system) as bar:
+        records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers,
+                           on_episode=lambda r: bar.update(1))
+    seconds = time.perf_counter() - t0
+    summary = summarize(records, config.task.success_radius)
+    print(TABLE_HEADER)
+    print(table_row(args.system, summary))
+    pruned = summary.pruned.count if summary.pruned else 0
+    print(f"{len(records)} episodes ({pruned} unambiguous) in {seconds:.0f} s with {args.workers} worker(s): "
+          f"{60 * len(records) / seconds:.1f} episodes/min")
+    if args.json:
+        write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers))
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0
+
+
+def cmd_fit_avg_forward(args: argparse.Namespace) -> int:
+    from gsmn.evaluation import AVG_FORWARD_PATH, evaluate
+    from gsmn.task.baselines import fit_avg_forward
+    from gsmn.world.spec import split_env_ids
+
+    config = config_from_args(args)
+    env_ids = split_env_ids("train", args.episodes)
+    with _progress(len(env_ids), "oracle on train") as bar:
+        records = evaluate("oracle", env_ids, config, workers=args.workers, on_episode=lambda r: bar.update(1))
+    average = fit_avg_forward(records)
+    out = Path(args.out) if args.out else AVG_FORWARD_PATH
+    average.save(out)
+    print(f"avg-forward: v = {average.forward_velocity:.3f} m/s, omega = {average.yaw_rate:.4f} rad/s for "
+          f"{average.steps} steps (from {average.episodes} expert episodes on train) -> {out}")
+    return 0
+
+
 # -- gsmn serve ------------------------------------------------------------------------------------
 def cmd_serve(args: argparse.Namespace) -> int:
     import time
@@ -120,6 +169,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=str, default=None, help="folder to write the PNGs into")
     add_config_arguments(p)
     p.set_defaults(func=cmd_world)
+
+    p = sub.add_parser("eval", help="fly a system on environments and print its Table 1 row")
+    p.add_argument("--system", required=True, help="oracle, avg-forward, random-point, random-landmark")
+    p.add_argument("--checkpoint", default=None, help="the system's checkpoint (avg-forward: its JSON)")
+    p.add_argument("--split", choices=("train", "test", "dev"), default=None, help="evaluate on this split")
+    p.add_argument("--episodes", type=int, default=None, help="how many environments of the split (default 750)")
+    p.add_argument("--env-ids", default=None, help="'A:B' or '3,17,42' instead of a split")
+    p.add_argument("--json", default=None, help="write per-episode records and the summary here")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("fit-avg-forward", help="measure the avg-forward baseline from expert episodes on train")
+    p.add_argument("--episodes", type=int, default=500, help="expert episodes to average over")
+    p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
+    p.add_argument("--out", default=None, help="where to write (default checkpoints/avg_forward.json)")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_fit_avg_forward)
 
     p = sub.add_parser("serve", help="serve the browser view (for now a world preview; the dashboard later)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")

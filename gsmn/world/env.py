@@ -34,7 +34,7 @@ class Pose:
 
 @dataclass(frozen=True)
 class Observation:
-    image: np.ndarray  # (H, W, 3) uint8, top row first
+    image: np.ndarray | None  # (H, W, 3) uint8, top row first; None from an Env made with render=False
     pose: Pose
     T_world_camera: np.ndarray  # (4, 4), camera x right, y down, z forward
     K: np.ndarray  # (3, 3)
@@ -43,11 +43,16 @@ class Observation:
 
 
 class Env:
-    """A quadcopter in a procedurally generated world. Reuses the compiled world when reset to the same id."""
+    """A quadcopter in a procedurally generated world. Reuses the compiled world when reset to the same id.
 
-    def __init__(self, config: RunConfig | None = None, catalogue: tuple[AssetModel, ...] | None = None):
+    `render=False` skips the camera (observations carry the pose only), for policies that do not look,
+    such as the expert and the trivial baselines."""
+
+    def __init__(self, config: RunConfig | None = None, catalogue: tuple[AssetModel, ...] | None = None,
+                 render: bool = True):
         self.config = config or RunConfig()
         self.catalogue = catalogue or load_catalogue()
+        self.render = render
         self.sim: Simulator | None = None
         self.instruction: str | None = None
         self._step = 0
@@ -84,8 +89,9 @@ class Env:
         assert sim is not None
         R = sim.R_world_body
         pose = Pose(position=sim.position, yaw=sim.yaw, R_world_body=R)
-        return Observation(image=sim.render(), pose=pose, T_world_camera=sim.T_world_camera, K=sim.K.copy(),
-                           step=self._step, time=sim.time)
+        image = sim.render() if self.render else None
+        return Observation(image=image, pose=pose, T_world_camera=sim.T_world_camera, K=sim.K.copy(), step=self._step,
+                           time=sim.time)
 
     def close(self) -> None:
         if self.sim is not None:

@@ -1,0 +1,146 @@
+"""Evaluation: fly a system on many environments, in parallel worker processes, and summarise it as a row
+of the paper's Table 1 (success %, landmark success %, mean and median distance to the goal; the pruned,
+unambiguous subset in brackets).
+
+Workers are separate processes started with "spawn" (a forked MuJoCo/EGL context is not safe); each holds
+its own environment and policy and flies whole episodes. Results come back in the order of the ids.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import platform
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import gsmn
+from gsmn.config import RunConfig
+from gsmn.task.baselines import (
+    TRIVIAL_SYSTEMS,
+    AverageAction,
+    AvgForwardPolicy,
+    ExpertPolicy,
+    RandomLandmarkPolicy,
+    RandomPointPolicy,
+)
+from gsmn.task.metrics import Summary, summarize
+from gsmn.task.rollout import EpisodeRecord, Policy, rollout, task_for_env
+from gsmn.world.env import Env
+from gsmn.world.spec import split_env_ids
+
+REPO_ROOT = Path(gsmn.__file__).resolve().parents[1]
+AVG_FORWARD_PATH = REPO_ROOT / "checkpoints" / "avg_forward.json"
+SYSTEMS = TRIVIAL_SYSTEMS
+
+
+def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None) -> Policy:
+    if system == "oracle":
+        return ExpertPolicy(config)
+    if system == "random-point":
+        return RandomPointPolicy(config)
+    if system == "random-landmark":
+        return RandomLandmarkPolicy(config)
+    if system == "avg-forward":
+        return AvgForwardPolicy(AverageAction.load(Path(checkpoint) if checkpoint else AVG_FORWARD_PATH))
+    raise ValueError(f"unknown system {system!r}; available: {', '.join(SYSTEMS)}")
+
+
+def parse_env_ids(spec: str) -> list[int]:
+    """'A:B' (A inclusive, B exclusive) or a comma-separated list '3,17,42'."""
+    try:
+        if ":" in spec:
+            a, b = (int(s) for s in spec.split(":"))
+            ids = list(range(a, b))
+        else:
+            ids = [int(s) for s in spec.split(",") if s.strip()]
+    except ValueError as e:
+        raise ValueError(f"--env-ids takes 'A:B' or '3,17,42', got {spec!r}") from e
+    if not ids or min(ids) < 0:
+        raise ValueError(f"--env-ids must name at least one non-negative id, got {spec!r}")
+    return ids
+
+
+def env_ids_for(split: str | None, episodes: int | None, env_ids: str | None) -> list[int]:
+    if env_ids is not None:
+        return parse_env_ids(env_ids)
+    if split is None:
+        raise ValueError("give --split or --env-ids")
+    return split_env_ids(split, episodes or 750)
+
+
+# -- workers ----------------------------------------------------------------------------------------
+_worker: dict = {}
+
+
+def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None) -> None:
+    policy = make_policy(system, config, checkpoint)
+    render = policy.needs_images if render is None else render
+    _worker.update(config=config, policy=policy, env=Env(config, render=render))
+
+
+def _run_one(env_id: int) -> EpisodeRecord:
+    config: RunConfig = _worker["config"]
+    return rollout(_worker["env"], _worker["policy"], task_for_env(env_id, config), config.task.horizon,
+                   success_radius=config.task.success_radius)
+
+
+def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint: str | Path | None = None,
+             workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
+             render: bool | None = None) -> list[EpisodeRecord]:
+    """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
+    on or off (default: only for policies that look)."""
+    checkpoint = str(checkpoint) if checkpoint is not None else None
+    make_policy(system, config, checkpoint)  # fail here, clearly, before any worker starts
+    records = []
+    if workers <= 1:
+        _init_worker(system, config, checkpoint, render)
+        try:
+            for env_id in env_ids:
+                records.append(_run_one(env_id))
+                if on_episode:
+                    on_episode(records[-1])
+        finally:
+            _worker.pop("env").close()
+        return records
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
+                             initargs=(system, config, checkpoint, render)) as pool:
+        for record in pool.map(_run_one, env_ids):
+            records.append(record)
+            if on_episode:
+                on_episode(record)
+    return records
+
+
+# -- reporting --------------------------------------------------------------------------------------
+TABLE_HEADER = f"{'system':18} {'success %':>17} {'landmark %':>17} {'mean dist (m)':>15} {'median dist (m)':>15}"
+
+
+def table_row(system: str, s: Summary) -> str:
+    """One row of Table 1; the pruned (unambiguous) figures in brackets."""
+    p = s.pruned or s
+    return (f"{system:18} {s.success:7.2f} ({p.success:6.2f}) {s.landmark_success:7.2f} ({p.landmark_success:6.2f}) "
+            f"{s.mean_distance:6.2f} ({p.mean_distance:5.2f}) {s.median_distance:6.2f} ({p.median_distance:5.2f})")
+
+
+def results_dict(system: str, checkpoint: str | None, records: list[EpisodeRecord], config: RunConfig,
+                 seconds: float, workers: int) -> dict:
+    summary = summarize(records, config.task.success_radius)
+    return {
+        "system": system, "checkpoint": checkpoint, "env_ids": [r.env_id for r in records],
+        "summary": summary.to_dict(), "seconds": round(seconds, 2), "workers": workers,
+        "machine": platform.machine(), "config": config.to_dict(),
+        "episodes": [r.to_dict() for r in records],
+    }
+
+
+def write_json(path: Path, results: dict) -> None:
+    """Write atomically: a killed run never leaves half a file where a good one was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results) + "\n")
+    tmp.replace(path)
+

@@ -1,0 +1,141 @@
+"""Episodes: the task of an environment, the policy interface, and the one rollout function.
+
+`rollout(env, policy, task)` runs any policy (the expert, a learned model, a baseline, a DAgger mixture)
+for up to the horizon and returns a typed `EpisodeRecord`; evaluation, data collection and the live
+dashboard all use it, the dashboard through the `on_step` callback. A policy's STOP ends the episode
+where the drone is (paper: Task, "the agent outputs the action STOP").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Protocol
+
+import numpy as np
+
+from gsmn.config import RunConfig
+from gsmn.task.demo import DemoPathError, demonstration_path
+from gsmn.task.instructions import Instruction, parse_instruction, rng_for_instruction, sample_instruction
+from gsmn.task.metrics import goal_distance, landmark_success, success
+from gsmn.world.env import Action, Env, Observation
+from gsmn.world.spec import WorldSpec, world_for_env
+
+
+@dataclass(frozen=True)
+class Task:
+    """An episode to fly: a world, an instruction, and the demonstration path to its goal."""
+
+    world: WorldSpec
+    instruction: Instruction
+    path: np.ndarray  # (N, 2) demonstration waypoints
+
+
+def task_for_env(env_id: int, config: RunConfig) -> Task:
+    """The task of an environment id, deterministic. Should the sampled instruction's demonstration path
+    be rejected (4 in 5000 environments), the next instruction from the same stream is taken."""
+    world = world_for_env(env_id, config.world)
+    rng = rng_for_instruction(env_id, config.task.seed)
+    for _ in range(100):
+        instruction = sample_instruction(world, rng, config.task)
+        try:
+            return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+        except DemoPathError:
+            continue
+    raise DemoPathError(f"no demonstration path for any instruction of environment {env_id}")
+
+
+def task_for_text(world: WorldSpec, text: str, config: RunConfig) -> Task:
+    """A task from a typed instruction; raises InstructionError (user-readable) or DemoPathError."""
+    instruction = parse_instruction(text, world)
+    return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+
+
+@dataclass(frozen=True)
+class PolicyAction:
+    forward_velocity: float  # m/s
+    yaw_rate: float  # rad/s, positive turns left
+    stop: bool
+
+
+class Policy(Protocol):
+    name: str
+    needs_images: bool  # False lets the environment skip rendering
+
+    def reset(self, task: Task) -> None: ...
+
+    def act(self, obs: Observation) -> PolicyAction: ...
+
+
+@dataclass(frozen=True)
+class EpisodeRecord:
+    """One finished episode. Carries the fields `gsmn.task.metrics.summarize` reads."""
+
+    system: str
+    env_id: int
+    instruction: str
+    landmark_index: int
+    noun_phrase: str
+    side: str
+    ambiguous: bool
+    goal_x: float
+    goal_y: float
+    landmark_x: float
+    landmark_y: float
+    start_x: float
+    start_y: float
+    final_x: float
+    final_y: float
+    steps: int  # actions flown before STOP or the horizon
+    stopped: bool  # the policy said STOP (else the horizon ended the episode)
+    success: bool
+    landmark_success: bool
+    goal_distance: float
+    trajectory: tuple[tuple[float, float, float, float], ...]  # (x, y, z, yaw) at every observation
+    actions: tuple[tuple[float, float, bool], ...]  # (v m/s, omega rad/s, stop) at every observation
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EpisodeRecord:
+        d = dict(d)
+        d["trajectory"] = tuple(tuple(p) for p in d["trajectory"])
+        d["actions"] = tuple(tuple(a) for a in d["actions"])
+        return cls(**d)
+
+
+OnStep = Callable[[Observation, PolicyAction], None]
+
+
+def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep | None = None,
+            success_radius: float = 6.0) -> EpisodeRecord:
+    """Fly `policy` on `task` until it says STOP or `horizon` actions have been flown."""
+    world, instruction = task.world, task.instruction
+    obs = env.reset(world.env_id, instruction.text, world)
+    policy.reset(task)
+    trajectory, actions, stopped = [], [], False
+    while True:
+        action = policy.act(obs)
+        p = obs.pose.position
+        trajectory.append((float(p[0]), float(p[1]), float(p[2]), float(obs.pose.yaw)))
+        actions.append((float(action.forward_velocity), float(action.yaw_rate), bool(action.stop)))
+        if on_step is not None:
+            on_step(obs, action)
+        if action.stop:
+            stopped = True
+            break
+        if obs.step >= horizon:
+            break
+        obs = env.step(Action(action.forward_velocity, action.yaw_rate))
+    final = obs.pose.position[:2]
+    landmark = world.landmarks[instruction.landmark_index]
+    return EpisodeRecord(
+        system=policy.name, env_id=world.env_id, instruction=instruction.text,
+        landmark_index=instruction.landmark_index, noun_phrase=instruction.noun_phrase, side=instruction.side,
+        ambiguous=instruction.ambiguous, goal_x=instruction.goal_x, goal_y=instruction.goal_y,
+        landmark_x=landmark.x, landmark_y=landmark.y, start_x=world.start_x, start_y=world.start_y,
+        final_x=float(final[0]), final_y=float(final[1]), steps=obs.step, stopped=stopped,
+        success=success(final, landmark.position, world.start_position, instruction.side, success_radius),
+        landmark_success=landmark_success(final, landmark.position, success_radius),
+        goal_distance=goal_distance(final, instruction.goal), trajectory=tuple(trajectory), actions=tuple(actions))

@@ -1,0 +1,128 @@
+"""Rollout, baselines and evaluation, with the real simulator and real worker processes."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gsmn.config import preset
+from gsmn.evaluation import evaluate, make_policy, parse_env_ids, table_row
+from gsmn.task.baselines import (
+    AverageAction,
+    AvgForwardPolicy,
+    ExpertPolicy,
+    RandomLandmarkPolicy,
+    fit_avg_forward,
+)
+from gsmn.task.instructions import goal_position
+from gsmn.task.metrics import summarize
+from gsmn.task.rollout import EpisodeRecord, rollout, task_for_env
+from gsmn.world.env import Env
+
+TINY = preset("tiny")
+
+
+def test_task_for_env_is_deterministic_and_its_path_ends_at_the_goal():
+    a, b = task_for_env(75, TINY), task_for_env(75, TINY)
+    assert a.instruction == b.instruction and np.array_equal(a.path, b.path)
+    assert np.linalg.norm(a.path[-1] - a.instruction.goal) < TINY.expert.target_tolerance + 1e-6
+    assert np.allclose(a.path[0], a.world.start_position)
+
+
+def test_rollout_record_matches_what_was_flown():
+    task = task_for_env(71, TINY)
+    seen = []
+    with Env(TINY) as env:
+        record = rollout(env, ExpertPolicy(TINY), task, horizon=TINY.task.horizon,
+                         on_step=lambda obs, action: seen.append((obs.step, obs.image.shape, action.stop)))
+    assert record.stopped and seen[-1][2] and not any(stop for *_, stop in seen[:-1])
+    assert [s for s, *_ in seen] == list(range(record.steps + 1))
+    assert all(shape == (144, 256, 3) for _, shape, _ in seen)
+    assert len(record.trajectory) == len(record.actions) == record.steps + 1
+    assert (record.final_x, record.final_y) == record.trajectory[-1][:2]
+    assert record.goal_distance == pytest.approx(math.dist((record.final_x, record.final_y),
+                                                           (record.goal_x, record.goal_y)))
+    assert record.success and record.goal_distance < 1.5
+    assert EpisodeRecord.from_dict(json.loads(json.dumps(record.to_dict()))) == record
+
+
+def test_horizon_ends_an_episode_that_never_stops():
+    task = task_for_env(72, TINY)
+    average = AverageAction(forward_velocity=0.5, yaw_rate=0.3, steps=1000, episodes=1)
+    with Env(TINY, render=False) as env:
+        record = rollout(env, AvgForwardPolicy(average), task, horizon=7)
+    assert not record.stopped and record.steps == 7 and len(record.trajectory) == 8
+
+
+def test_random_landmark_goes_to_the_instructed_side_of_some_landmark():
+    finals = {}
+    for env_id in (70, 73, 76):
+        task = task_for_env(env_id, TINY)
+        with Env(TINY, render=False) as env:
+            r1 = rollout(env, RandomLandmarkPolicy(TINY), task, TINY.task.horizon)
+            r2 = rollout(env, RandomLandmarkPolicy(TINY), task, TINY.task.horizon)
+        assert (r1.final_x, r1.final_y) == (r2.final_x, r2.final_y), "seeded per environment"
+        targets = [goal_position(task.world, i, task.instruction.side) for i in range(len(task.world.landmarks))]
+        nearest = min(math.dist((r1.final_x, r1.final_y), t) for t in targets)
+        assert nearest < 1.5
+        finals[env_id] = (r1.final_x, r1.final_y)
+    assert len(set(finals.values())) == 3
+
+
+def test_avg_forward_fits_saves_and_loads(tmp_path):
+    records = evaluate("oracle", [70, 71, 72], TINY)
+    average = fit_avg_forward(records)
+    assert 0 < average.forward_velocity <= TINY.drone.max_forward_velocity
+    assert average.steps == round(np.mean([r.steps for r in records])) and average.episodes == 3
+    average.save(tmp_path / "avg.json")
+    assert AverageAction.load(tmp_path / "avg.json") == average
+    policy = make_policy("avg-forward", TINY, tmp_path / "avg.json")
+    with Env(TINY, render=False) as env:
+        record = rollout(env, policy, task_for_env(73, TINY), TINY.task.horizon)
+    assert record.stopped and record.steps == average.steps
+    with pytest.raises(FileNotFoundError, match="fit-avg-forward"):
+        make_policy("avg-forward", TINY, tmp_path / "missing.json")
+
+
+def test_parallel_workers_give_the_same_records_as_one_process():
+    ids = [70, 71, 72, 73]
+    one = evaluate("random-point", ids, TINY, workers=1)
+    two = evaluate("random-point", ids, TINY, workers=2)
+    assert [r.env_id for r in two] == ids
+    assert one == two
+
+
+def test_parse_env_ids_and_unknown_systems():
+    assert parse_env_ids("3:6") == [3, 4, 5]
+    assert parse_env_ids("3,17,42") == [3, 17, 42]
+    for bad in ("a:b", "", "-1,2", "5:5"):
+        with pytest.raises(ValueError, match="env-ids"):
+            parse_env_ids(bad)
+    with pytest.raises(ValueError, match="unknown system 'gsmn-nope'"):
+        make_policy("gsmn-nope", TINY)
+
+
+def test_table_row_shows_pruned_figures_in_brackets():
+    records = evaluate("oracle", [70, 71], TINY)
+    row = table_row("oracle", summarize(records))
+    assert row.startswith("oracle") and row.count("(") == 4
+
+
+def test_cli_eval_writes_records_and_summary(tmp_path):
+    out = tmp_path / "eval.json"
+    run = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "random-landmark", "--env-ids",
+                          "70,71,72", "--json", str(out), "--preset", "tiny"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "random-landmark" in run.stdout and "success %" in run.stdout
+    d = json.loads(out.read_text())
+    assert d["system"] == "random-landmark" and d["env_ids"] == [70, 71, 72]
+    assert set(d["summary"]) >= {"success", "landmark_success", "mean_distance", "median_distance", "pruned"}
+    assert len(d["episodes"]) == 3 and d["episodes"][0]["instruction"].startswith("go to the ")
+    bad = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "nope", "--env-ids", "70"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "unknown system" in bad.stderr
