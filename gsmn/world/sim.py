@@ -291,7 +291,12 @@ class Simulator:
     def _get_renderer(self, height: int, width: int) -> mujoco.Renderer:
         r = self._renderers.get((height, width))
         if r is None:
-            r = self._renderers[(height, width)] = mujoco.Renderer(self.model, height, width)
+            try:
+                r = self._renderers[(height, width)] = mujoco.Renderer(self.model, height, width)
+            except mujoco.FatalError as e:
+                raise RuntimeError(
+                    f"MuJoCo could not create an OpenGL context ({e}). Rendering here is headless through EGL: "
+                    "set MUJOCO_GL=egl in the environment, or import gsmn before mujoco (gsmn sets it).") from e
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.config.camera.shadows
         return r
 
