@@ -188,6 +188,113 @@ class ExpertConfig:
 
 
 @dataclass(frozen=True)
+class ModelConfig:
+    """GSMN and its first-person baselines (paper: Model Architecture, Systems; sizes from the original code).
+
+    The world map covers the field (world.field_size) with map_size x map_size cells; the robot-frame map has
+    the same cell size. See docs/model.md for every departure and default."""
+
+    map_size: int = _f(32, "world-frame map cells per side, covering the whole field (0.9375 m cells at 30 m)")
+    robot_map_size: int = _f(64, "robot-frame map cells per side, same cell size as the world map")
+    feature_channels: int = _f(32, "ResNet feature channels C_f (the semantic map has as many)")
+    relevance_channels: int = _f(3, "channels of the relevance map R")
+    goal_channels: int = _f(2, "channels of the goal map G")
+    word_embedding_dim: int = _f(20, "instruction word embedding size")
+    instruction_hidden: int = _f(30, "instruction LSTM hidden size = sentence embedding size")
+    leaky_lambda: float = _f(0.2, "leaky-integrator rate of the semantic map (first step: S = F)")
+    leaky_relu_slope: float = _f(0.01, "negative slope of every LeakyReLU")
+    filter_init_std: float = _f(0.001, "std of the N(0, std) init of the language-to-filter layers")
+    controller_hidden: int = _f(64, "GSMN controller hidden units")
+    controller_dropout: float = _f(0.5, "dropout on the flattened controller input")
+    # The paper feeds the instruction embedding to the controller, the original code does not (docs/model.md).
+    controller_uses_instruction: bool = _f(False, "also feed the sentence embedding to the GSMN controller "
+                                                  "(paper: yes; original code: no)")
+    fpv_hidden: int = _f(32, "GS-FPV(-MEM) controller hidden units")
+    fpv_memory: int = _f(32, "GS-FPV-MEM LSTM size")
+    pose_noise_std: float = _f(0.0, "std of Gaussian noise on the position (x, y, z) the model sees, fresh every "
+                                    "forward (m); the paper's noise experiment uses 0.5")
+    pose_noise_yaw_deg: float = _f(0.0, "std of Gaussian noise on the yaw the model sees (deg)")
+    channels_last: bool = _f(True, "run the ResNet in channels-last memory format (faster on CPU; same maths)")
+    inference_bf16: bool = _f(False, "outside training, run the ResNet in bfloat16 autocast (faster on CPUs with "
+                                     "AMX; features change by about 2 %, see docs/model.md)")
+
+    def __post_init__(self) -> None:
+        _check(self.map_size >= 2 and self.robot_map_size >= 2, "model map sizes must be >= 2")
+        for name in ("feature_channels", "relevance_channels", "goal_channels", "word_embedding_dim",
+                     "instruction_hidden", "controller_hidden", "fpv_hidden", "fpv_memory"):
+            _check(getattr(self, name) >= 1, f"model.{name} must be >= 1, got {getattr(self, name)}")
+        _check(0 < self.leaky_lambda <= 1, f"model.leaky_lambda must be in (0, 1], got {self.leaky_lambda}")
+        _check(0 <= self.controller_dropout < 1, "model.controller_dropout must be in [0, 1)")
+        _check(self.filter_init_std >= 0, "model.filter_init_std must be >= 0")
+        _check(self.pose_noise_std >= 0 and self.pose_noise_yaw_deg >= 0, "model pose noise stds must be >= 0")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """The training objective: action loss plus four weighted auxiliaries (paper: Learning, Auxiliary Objectives).
+
+    The switches are the paper's ablations (-J_percept, -J_lang, -J_ground, -J_plan); a switched-off term is
+    not computed and contributes exactly zero. Kinds without J_plan ("gsmn-no-plan" and the FPV baselines)
+    switch the goal term off themselves."""
+
+    action_weight: float = _f(1.0, "weight of the action loss J_act")
+    perception_weight: float = _f(0.1, "weight of the perception objective J_percept")
+    language_weight: float = _f(0.1, "weight of the instruction objective J_lang")
+    grounding_weight: float = _f(0.1, "weight of the grounding objective J_ground")
+    goal_weight: float = _f(0.1, "weight of the planning (goal map) objective J_plan")
+    perception: bool = _f(True, "use J_percept (false: the -J_percept ablation)")
+    language: bool = _f(True, "use J_lang (false: the -J_lang ablation)")
+    grounding: bool = _f(True, "use J_ground (false: the -J_ground ablation)")
+    goal: bool = _f(True, "use J_plan (false: the -J_plan ablation)")
+
+    def __post_init__(self) -> None:
+        for name in ("action_weight", "perception_weight", "language_weight", "grounding_weight", "goal_weight"):
+            _check(getattr(self, name) >= 0, f"loss.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Supervised learning on expert data (paper: Learning; Hyper-parameters and Implementation Details)."""
+
+    epochs: int = _f(30, "passes over the expert data (the paper trains 30 epochs)")
+    batch_size: int = _f(4, "episodes per optimizer step (whole episodes: the semantic map spans them)")
+    learning_rate: float = _f(1e-3, "Adam learning rate (paper: 0.001)")
+    weight_decay: float = _f(1e-6, "L2 regularisation (paper: gamma = 1e-6; the original code used 1e-7)")
+    seed: int = _f(0, "seeds episode order, dropout and sampled negatives, per (epoch, batch): resumes exactly")
+    save_every_seconds: float = _f(120.0, "save resumable state at least this often (and after every epoch)")
+    threads: int = _f(2, "torch CPU threads")
+
+    def __post_init__(self) -> None:
+        _check(self.epochs >= 1, "train.epochs must be >= 1")
+        _check(self.batch_size >= 1, "train.batch_size must be >= 1")
+        _check(self.learning_rate > 0 and self.weight_decay >= 0, "train.learning_rate > 0, weight_decay >= 0")
+        _check(self.save_every_seconds >= 0, "train.save_every_seconds must be >= 0")
+        _check(self.threads >= 1, "train.threads must be >= 1")
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """DAggerFM (paper: Algorithm 1; settings from the original code)."""
+
+    iterations: int = _f(150, "DAggerFM iterations, one epoch over the dataset each")
+    rollouts_per_iteration: int = _f(24, "N_D: rollouts discarded and collected anew each iteration")
+    dataset_size: int = _f(500, "M: rollouts kept in the dataset (discarding uniformly at random)")
+    beta0: float = _f(0.92, "the expert acts with probability beta_i = beta0 ** (i + 1) at each step")
+    max_deviation: float = _f(4.5, "a rollout is cut when the drone strays this far from the path (m)")
+    workers: int = _f(2, "parallel rollout worker processes")
+    split: str = _f("train", "environments rollouts are drawn from")
+
+    def __post_init__(self) -> None:
+        _check(self.iterations >= 1, "dagger.iterations must be >= 1")
+        _check(1 <= self.rollouts_per_iteration <= self.dataset_size,
+               "need 1 <= dagger.rollouts_per_iteration <= dagger.dataset_size")
+        _check(0 <= self.beta0 <= 1, "dagger.beta0 must be in [0, 1]")
+        _check(self.max_deviation > 0, "dagger.max_deviation must be positive")
+        _check(self.workers >= 1, "dagger.workers must be >= 1")
+        _check(self.split in ("train", "test", "dev"), "dagger.split must be train, test or dev")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """Everything a run needs, resolved and saved alongside its outputs."""
 
@@ -196,6 +303,10 @@ class RunConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -1,0 +1,155 @@
+"""Checkpoints: a folder that loads from its path alone (house style; LeRobot-like).
+
+    weights.safetensors   the model's tensors (safetensors: never unpickled)
+    config.json           the resolved RunConfig (RunConfig.to_dict)
+    vocabulary.json       the word list the token ids refer to
+    meta.json             {"format", "kind", "created", "code_version", "metrics", ...free-form}
+
+`save_checkpoint` writes into a temporary sibling folder and renames it into place, so a reader never sees a
+half-written checkpoint. `load_checkpoint` raises `CheckpointError` naming the folder and what is wrong for a
+missing or malformed file, an unknown kind, or weights that do not fit the model the config and kind describe.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import uuid
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from gsmn.config import ConfigError, RunConfig
+from gsmn.model.models import KINDS, Model, build_model
+from gsmn.model.policy import ModelPolicy
+from gsmn.model.vocabulary import Vocabulary
+
+FORMAT = 1
+FILES = ("weights.safetensors", "config.json", "vocabulary.json", "meta.json")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint folder is missing, malformed, or does not fit its model."""
+
+
+def code_version() -> str:
+    """`git describe --always --dirty` of this source tree, or "unknown"."""
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
+def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabulary: Vocabulary,
+                    meta: dict[str, Any] | None = None) -> Path:
+    """Write a checkpoint folder atomically (replacing an existing checkpoint there). `meta` is free-form JSON
+    (e.g. {"metrics": {...}, "epoch": 3}); kind, created, code_version and format are filled in."""
+    folder = Path(folder)
+    if config.model != model.config.model or config.world.field_size != model.config.world.field_size \
+            or (config.camera.width, config.camera.height) != model.image_size:
+        raise ValueError("save_checkpoint: `config` does not describe this model (model, field or camera sizes "
+                         "differ from the config the model was built with)")
+    if folder.exists() and any(folder.iterdir()) and not (folder / "meta.json").is_file():
+        raise CheckpointError(f"{folder} exists and is not a checkpoint; refusing to replace it")
+    full_meta = {"metrics": {}, **(meta or {}), "format": FORMAT, "kind": model.kind,
+                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "code_version": code_version()}
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = folder.parent / f".{folder.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+        save_file(tensors, str(tmp / "weights.safetensors"), metadata={"kind": model.kind, "format": str(FORMAT)})
+        (tmp / "config.json").write_text(config.to_json() + "\n")
+        (tmp / "vocabulary.json").write_text(vocabulary.to_json() + "\n")
+        (tmp / "meta.json").write_text(json.dumps(full_meta, indent=1, sort_keys=True) + "\n")
+        if folder.exists():
+            old = folder.parent / f".{folder.name}.old-{uuid.uuid4().hex[:8]}"
+            os.rename(folder, old)
+            os.rename(tmp, folder)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, folder)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return folder
+
+
+def _read_json(folder: Path, name: str) -> Any:
+    path = folder / name
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {folder}: {name} is missing")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"checkpoint {folder}: {name} is not valid JSON ({e})") from e
+
+
+def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
+                    ) -> tuple[Model, RunConfig, Vocabulary, dict[str, Any]]:
+    """(model in eval mode, config, vocabulary, meta) from a checkpoint folder."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CheckpointError(f"checkpoint {folder}: no such folder")
+    meta = _read_json(folder, "meta.json")
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"checkpoint {folder}: meta.json must hold an object")
+    kind = meta.get("kind")
+    if kind not in KINDS:
+        raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
+    try:
+        config = RunConfig.from_dict(_read_json(folder, "config.json"))
+    except (ConfigError, TypeError, AttributeError) as e:
+        raise CheckpointError(f"checkpoint {folder}: config.json is not a valid RunConfig ({e})") from e
+    try:
+        vocabulary = Vocabulary.from_json((folder / "vocabulary.json").read_text())
+    except FileNotFoundError as e:
+        raise CheckpointError(f"checkpoint {folder}: vocabulary.json is missing") from e
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"checkpoint {folder}: vocabulary.json is malformed ({e})") from e
+    weights = folder / "weights.safetensors"
+    if not weights.is_file():
+        raise CheckpointError(f"checkpoint {folder}: weights.safetensors is missing")
+    try:
+        tensors = load_file(str(weights), device=str(device))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {folder}: weights.safetensors cannot be read ({e})") from e
+    model = build_model(kind, config, vocabulary).to(device)
+    _check_weights(folder, kind, model, tensors)
+    model.load_state_dict(tensors, strict=True)
+    model.eval()
+    return model, config, vocabulary, meta
+
+
+def _check_weights(folder: Path, kind: str, model: Model, tensors: dict[str, torch.Tensor]) -> None:
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    wrong = [f"{k} (saved {tuple(tensors[k].shape)}, model {tuple(expected[k].shape)})"
+             for k in sorted(set(expected) & set(tensors)) if tensors[k].shape != expected[k].shape]
+    if not (missing or unexpected or wrong):
+        return
+
+    def listing(names: list[str]) -> str:
+        return ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+
+    problems = [f"missing {listing(missing)}" if missing else "", f"unexpected {listing(unexpected)}" if unexpected
+                else "", f"wrong shape {listing(wrong)}" if wrong else ""]
+    raise CheckpointError(f"checkpoint {folder}: weights.safetensors does not fit a {kind!r} model built from its "
+                          f"config.json and vocabulary.json: " + "; ".join(p for p in problems if p))
+
+
+def load_policy(folder: str | Path) -> ModelPolicy:
+    """The policy of a checkpoint folder (named after its kind)."""
+    model, config, vocabulary, _ = load_checkpoint(folder)
+    return ModelPolicy(model, vocabulary, config)

@@ -1,0 +1,80 @@
+"""Language-conditioned filters (paper: Language Grounding and Goal Prediction; original code for the details).
+
+Relevance (grounding): a 1x1 convolution whose kernel comes from the instruction,
+    kernel = L2-normalise(sigmoid(W e + b)) reshaped to (3, C_f),   R = LeakyReLU(kernel * S)   (no conv bias).
+Goal: two cascaded 3x3 convolutions whose kernels come from the instruction,
+    [k1; k2] = sigmoid(W e + b), each L2-normalised, K1: 3 -> 3, K2: 3 -> 2,
+    G = conv(K2, dilation 3)(InstanceNorm(LeakyReLU(conv(K1)(R)))).
+W ~ N(0, 0.001) and b = 0 at init, so every kernel starts uniform (original code).
+
+Each sample has its own kernels. Inputs may carry extra leading dimensions after the batch, e.g. (B, T, C, H, W)
+for a sequence sharing one instruction: the 1x1 filter is a batched einsum, the 3x3 filters a grouped
+convolution with one group per sample.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from gsmn.model.blocks import instance_norm
+
+
+def _language_linear(embed_dim: int, out_features: int, init_std: float) -> nn.Linear:
+    linear = nn.Linear(embed_dim, out_features)
+    nn.init.normal_(linear.weight, 0.0, init_std)
+    nn.init.zeros_(linear.bias)
+    return linear
+
+
+class RelevanceFilter(nn.Module):
+    """Maps (B, ..., C_in, H, W) and sentence embeddings (B, E) -> relevance maps (B, ..., C_out, H, W)."""
+
+    def __init__(self, embed_dim: int, channels_in: int, channels_out: int, init_std: float = 0.001,
+                 slope: float = 0.01):
+        super().__init__()
+        self.channels_in, self.channels_out, self.slope = channels_in, channels_out, slope
+        self.linear = _language_linear(embed_dim, channels_in * channels_out, init_std)
+
+    def kernels(self, sentence_embedding: torch.Tensor) -> torch.Tensor:
+        """(B, C_out, C_in) unit-norm 1x1 kernels."""
+        k = F.normalize(torch.sigmoid(self.linear(sentence_embedding)), dim=-1)
+        return k.view(-1, self.channels_out, self.channels_in)
+
+    def forward(self, maps: torch.Tensor, sentence_embedding: torch.Tensor) -> torch.Tensor:
+        k = self.kernels(sentence_embedding)
+        return F.leaky_relu(torch.einsum("boc,b...chw->b...ohw", k, maps), self.slope)
+
+
+class GoalFilter(nn.Module):
+    """Relevance maps (B, ..., C_r, H, W) and sentence embeddings (B, E) -> goal maps (B, ..., C_g, H, W)."""
+
+    def __init__(self, embed_dim: int, channels_in: int = 3, channels_out: int = 2, dilation: int = 3,
+                 init_std: float = 0.001, slope: float = 0.01):
+        super().__init__()
+        self.channels_in, self.channels_out, self.dilation, self.slope = channels_in, channels_out, dilation, slope
+        self.k1_size = channels_in * channels_in * 9
+        self.k2_size = channels_out * channels_in * 9
+        self.linear = _language_linear(embed_dim, self.k1_size + self.k2_size, init_std)
+
+    def kernels(self, sentence_embedding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """K1 (B, C_r, C_r, 3, 3) and K2 (B, C_g, C_r, 3, 3), each unit-norm per sample."""
+        k = torch.sigmoid(self.linear(sentence_embedding))
+        k1, k2 = k.split([self.k1_size, self.k2_size], dim=-1)
+        k1 = F.normalize(k1, dim=-1).view(-1, self.channels_in, self.channels_in, 3, 3)
+        k2 = F.normalize(k2, dim=-1).view(-1, self.channels_out, self.channels_in, 3, 3)
+        return k1, k2
+
+    def forward(self, maps: torch.Tensor, sentence_embedding: torch.Tensor) -> torch.Tensor:
+        k1, k2 = self.kernels(sentence_embedding)
+        B, H, W = maps.shape[0], maps.shape[-2], maps.shape[-1]
+        lead = maps.shape[1:-3]  # extra leading dims shared by one sample's kernels
+        x = maps.reshape(B, -1, self.channels_in, H, W).transpose(0, 1)  # (N, B, C_r, H, W)
+        x = x.reshape(-1, B * self.channels_in, H, W)  # (N, B*C_r, H, W): one group per sample
+        x = F.conv2d(x, k1.reshape(B * self.channels_in, self.channels_in, 3, 3), padding=1, groups=B)
+        x = instance_norm(F.leaky_relu(x, self.slope))
+        x = F.conv2d(x, k2.reshape(B * self.channels_out, self.channels_in, 3, 3), padding=self.dilation,
+                     dilation=self.dilation, groups=B)  # (N, B*C_g, H, W)
+        x = x.reshape(-1, B, self.channels_out, H, W).transpose(0, 1)  # (B, N, C_g, H, W)
+        return x.reshape(B, *lead, self.channels_out, H, W)

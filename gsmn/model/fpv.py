@@ -1,0 +1,111 @@
+"""The first-person baselines GS-FPV and GS-FPV-MEM (paper: Systems; original code for the sizes).
+
+The same ResNet features and the same language-derived filters as GSMN, applied to the 18x32 image features
+instead of a map: no projection, no semantic map, no frame change.
+
+    relevance_map_c = LeakyReLU(1x1 language filter * features_c)        (B, T, 3, 18, 32)
+    goal_map_c      = language 3x3 filters (relevance_map_c)              (B, T, 2, 18, 32)
+    x               = [dropout(flatten([R_c, G_c])) (2880); sentence embedding (30) (; LSTM output (32))]
+    out             = W2 [x; LeakyReLU(W1 x)]   (hidden 32)
+
+GS-FPV-MEM stores the flattened [R_c, G_c] in an LSTM(2880 -> 32) whose state runs across the episode's steps
+and feeds its output to the perceptron. The baselines get the same auxiliary objectives as GSMN except the
+planning objective (the goal may be out of view): perception and grounding at landmark cells of the image
+feature map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+import torch.nn as nn
+
+from gsmn.config import RunConfig
+from gsmn.model.controller import DensePerceptron, split_actions
+from gsmn.model.filters import GoalFilter, RelevanceFilter
+from gsmn.model.grid import MapGeometry
+from gsmn.model.heads import AuxiliaryHeads
+from gsmn.model.language import InstructionEncoder
+from gsmn.model.perception import DOWNSCALE, ResNet13, standardise
+from gsmn.task.instructions import SIDES
+from gsmn.world.landmarks import CATALOGUE
+
+MemoryState = tuple[torch.Tensor, torch.Tensor] | None  # LSTM (h, c), each (1, B, hidden)
+
+
+@dataclass(frozen=True)
+class FPVOutputs:
+    """Everything a first-person baseline computes for B episodes of T steps."""
+
+    sentence_embedding: torch.Tensor  # (B, E)
+    poses: torch.Tensor  # (B, T, 3) unused by the network; kept for viewers
+    features_c: torch.Tensor  # (B, T, C_f, h, w)
+    relevance_map_c: torch.Tensor  # (B, T, 3, h, w)
+    goal_map_c: torch.Tensor  # (B, T, 2, h, w)
+    memory: torch.Tensor | None  # (B, T, hidden) LSTM outputs (GS-FPV-MEM only)
+    v: torch.Tensor  # (B, T)
+    omega: torch.Tensor  # (B, T)
+    stop_logit: torch.Tensor  # (B, T)
+
+    def maps(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name.endswith("_c")}
+
+
+class GSFPV(nn.Module):
+    """GS-FPV (memory=False) or GS-FPV-MEM (memory=True)."""
+
+    def __init__(self, config: RunConfig, vocabulary_size: int, memory: bool, kind: str | None = None):
+        super().__init__()
+        m = config.model
+        self.kind = kind or ("gs-fpv-mem" if memory else "gs-fpv")
+        self.config = config
+        self.geometry = MapGeometry(config.world.field_size, m.map_size, m.robot_map_size)  # for the labels only
+        self.image_size = (config.camera.width, config.camera.height)
+        slope = m.leaky_relu_slope
+        self.encoder = InstructionEncoder(vocabulary_size, m.word_embedding_dim, m.instruction_hidden)
+        self.resnet = ResNet13(m.feature_channels, slope, m.channels_last, m.inference_bf16)
+        self.relevance_filter = RelevanceFilter(m.instruction_hidden, m.feature_channels, m.relevance_channels,
+                                                m.filter_init_std, slope)
+        self.goal_filter = GoalFilter(m.instruction_hidden, m.relevance_channels, m.goal_channels, 3,
+                                      m.filter_init_std, slope)
+        h, w = config.camera.height // DOWNSCALE, config.camera.width // DOWNSCALE
+        map_features = (m.relevance_channels + m.goal_channels) * h * w  # 5 * 18 * 32 = 2880
+        self.memory = nn.LSTM(map_features, m.fpv_memory, batch_first=True) if memory else None
+        extra = m.instruction_hidden + (m.fpv_memory if memory else 0)
+        self.perceptron = DensePerceptron(map_features, extra, m.fpv_hidden, m.controller_dropout, slope)
+        self.heads = AuxiliaryHeads(m.feature_channels, m.relevance_channels, None, m.instruction_hidden,
+                                    len(CATALOGUE), len(SIDES))
+
+    def encode_instruction(self, tokens: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        return self.encoder(tokens, lengths)
+
+    def _run(self, images: torch.Tensor, poses: torch.Tensor, sentence_embedding: torch.Tensor, state: MemoryState
+             ) -> tuple[FPVOutputs, MemoryState]:
+        B, T = images.shape[:2]
+        features_c = self.resnet(standardise(images.reshape(B * T, *images.shape[2:])))  # (B*T, C_f, h, w)
+        features_c = features_c.reshape(B, T, *features_c.shape[1:])
+        relevance_c = self.relevance_filter(features_c, sentence_embedding)  # (B, T, 3, h, w)
+        goal_c = self.goal_filter(relevance_c, sentence_embedding)  # (B, T, 2, h, w)
+        x = torch.cat([relevance_c, goal_c], dim=2).flatten(2)  # (B, T, 2880)
+        extra = sentence_embedding[:, None].expand(B, T, sentence_embedding.shape[-1])
+        memory = None
+        if self.memory is not None:
+            memory, state = self.memory(x, state)  # (B, T, hidden)
+            extra = torch.cat([extra, memory], dim=-1)
+        v, omega, stop_logit = split_actions(self.perceptron(x, extra))  # each (B, T)
+        return FPVOutputs(sentence_embedding, poses, features_c, relevance_c, goal_c, memory, v, omega,
+                          stop_logit), state
+
+    def forward(self, images: torch.Tensor, T_world_camera: torch.Tensor, K: torch.Tensor, poses: torch.Tensor,
+                tokens: torch.Tensor, lengths: torch.Tensor, initial_state: MemoryState = None,
+                generator: torch.Generator | None = None) -> FPVOutputs:
+        """Same inputs as GSMN.forward; the camera poses are not used (no projection)."""
+        outputs, _ = self._run(images, poses, self.encode_instruction(tokens, lengths), initial_state)
+        return outputs
+
+    def step(self, image: torch.Tensor, T_world_camera: torch.Tensor, K: torch.Tensor, poses: torch.Tensor,
+             sentence_embedding: torch.Tensor, state: MemoryState, generator: torch.Generator | None = None
+             ) -> tuple[FPVOutputs, MemoryState]:
+        """One step for B drones (see GSMN.step); the state is the LSTM's (h, c), None at the first step."""
+        return self._run(image[:, None], poses[:, None], sentence_embedding, state)

@@ -1,0 +1,81 @@
+"""A trained model as a `gsmn.task.rollout.Policy` (paper: Model Architecture, "at each step j, the network takes
+the agent context (instruction, image, pose) and predicts the next action").
+
+The policy object holds the runtime state, the network stays pure: the sentence embedding (computed once per
+episode), the carried state (GSMN: the semantic map; GS-FPV-MEM: the LSTM state) and the last step's outputs
+record (`last_outputs`, a GSMNOutputs or FPVOutputs with B = T = 1) for the dashboard. Actions come out in SI
+units: v * 1.6 m/s, omega * 2.44 rad/s (the drone's limits), STOP when sigmoid(stop_logit) > 0.5.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from gsmn.config import RunConfig
+from gsmn.model.gsmn import GSMN, GroundingOutputs
+from gsmn.model.models import Model, Outputs
+from gsmn.model.vocabulary import Vocabulary
+from gsmn.task.rollout import PolicyAction, Task
+from gsmn.world.env import Observation
+
+
+class ModelPolicy:
+    """Any model from `build_model` as a policy. `reset` puts the model in eval mode."""
+
+    needs_images = True
+
+    def __init__(self, model: Model, vocabulary: Vocabulary, config: RunConfig | None = None, name: str | None = None):
+        self.model = model
+        self.vocabulary = vocabulary
+        self.config = config or model.config
+        self.name = name or model.kind
+        self.sentence_embedding: torch.Tensor | None = None
+        self.state = None
+        self.last_outputs: Outputs | None = None
+        self.generator = torch.Generator()
+
+    def reset(self, task: Task) -> None:
+        self.model.eval()
+        self.generator.manual_seed(task.world.env_id)  # pose noise, when configured, repeats per environment
+        self.sentence_embedding = self.embed(task.instruction.text)
+        self.state = None
+        self.last_outputs = None
+
+    def embed(self, text: str) -> torch.Tensor:
+        """The sentence embedding (1, E) of an instruction."""
+        ids = self.vocabulary.encode(text)
+        with torch.inference_mode():
+            return self.model.encode_instruction(torch.tensor([ids]), torch.tensor([len(ids)]))
+
+    def act(self, obs: Observation) -> PolicyAction:
+        if self.sentence_embedding is None:
+            raise RuntimeError("call reset(task) before act")
+        if obs.image is None:
+            raise ValueError("this policy needs camera images; make the Env with render=True")
+        with torch.inference_mode():
+            image = torch.from_numpy(obs.image)[None]  # (1, H, W, 3)
+            T_world_camera = torch.as_tensor(obs.T_world_camera, dtype=torch.float32)[None]
+            K = torch.as_tensor(obs.K, dtype=torch.float32)[None]
+            p = obs.pose.position
+            poses = torch.tensor([[p[0], p[1], obs.pose.yaw]], dtype=torch.float32)
+            outputs, self.state = self.model.step(image, T_world_camera, K, poses, self.sentence_embedding,
+                                                  self.state, self.generator)
+        self.last_outputs = outputs
+        drone = self.config.drone
+        return PolicyAction(forward_velocity=float(outputs.v[0, 0]) * drone.max_forward_velocity,
+                            yaw_rate=float(outputs.omega[0, 0]) * drone.max_yaw_rate,
+                            stop=bool(outputs.stop_logit[0, 0] > 0))  # sigmoid(logit) > 0.5
+
+    def counterfactual(self, text: str) -> GroundingOutputs:
+        """Ground another instruction on the current semantic map at the current pose (GSMN only), without
+        changing the episode: the dashboard's counterfactual mode."""
+        if not isinstance(self.model, GSMN):
+            raise TypeError(f"counterfactual grounding needs a semantic map; {self.model.kind!r} has none")
+        if self.last_outputs is None:
+            raise RuntimeError("no semantic map yet: act at least once")
+        with torch.inference_mode():
+            return self.model.ground(self.last_outputs.semantic_map_w[:, 0], self.last_outputs.poses[:, 0],
+                                     self.embed(text))
+
+
+GSMNPolicy = ModelPolicy
