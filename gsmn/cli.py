@@ -138,6 +138,66 @@ def cmd_fit_avg_forward(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- gsmn collect ----------------------------------------------------------------------------------
+def cmd_collect(args: argparse.Namespace) -> int:
+    from gsmn.evaluation import env_ids_for
+    from gsmn.training.collect import collect_expert, episode_key
+    from gsmn.training.store import EpisodeStore
+
+    config = config_from_args(args)
+    env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
+    store = EpisodeStore(args.out)
+    before = len(store)
+    frames = []
+    with _progress(len(env_ids), "expert episodes") as bar:
+        bar.update(sum(1 for e in env_ids if episode_key(e) in store))
+        collect_expert(store, env_ids, config, workers=args.workers,
+                       on_episode=lambda env_id, n: (frames.append(n), bar.update(1)))
+    print(f"{args.out}: {len(store)} episodes ({len(store) - before} new, {sum(frames)} new frames)")
+    return 0
+
+
+# -- gsmn train -------------------------------------------------------------------------------------
+def cmd_train_supervised(args: argparse.Namespace) -> int:
+    from gsmn.model.runtime import keep_freed_memory
+    from gsmn.training.store import EpisodeStore
+    from gsmn.training.supervised import train_supervised
+
+    keep_freed_memory()  # process-wide allocator setting: about 1.35x training throughput (docs/model.md)
+    config = config_from_args(args)
+    for name in ("data", "dev"):
+        path = getattr(args, name)
+        if path and not Path(path).is_dir():
+            raise FileNotFoundError(f"--{name} {path} does not exist; make it with `gsmn collect --out {path}`")
+    checkpoint = train_supervised(Path(args.run), args.kind, config, EpisodeStore(args.data),
+                                  EpisodeStore(args.dev) if args.dev else None,
+                                  init=Path(args.init) if args.init else None)
+    print(f"checkpoint: {checkpoint}")
+    return 0
+
+
+def cmd_train_dagger(args: argparse.Namespace) -> int:
+    from gsmn.model.runtime import keep_freed_memory
+    from gsmn.training.dagger import train_dagger
+    from gsmn.training.store import EpisodeStore
+
+    keep_freed_memory()
+    config = config_from_args(args)
+    for name in ("data", "dev", "init"):
+        path = getattr(args, name)
+        if path and not Path(path).is_dir():
+            raise FileNotFoundError(f"--{name} {path} does not exist")
+    env_ids = None
+    if args.env_ids:
+        from gsmn.evaluation import parse_env_ids
+
+        env_ids = parse_env_ids(args.env_ids)
+    checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
+                              EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids)
+    print(f"checkpoint: {checkpoint}")
+    return 0
+
+
 # -- gsmn serve ------------------------------------------------------------------------------------
 def cmd_serve(args: argparse.Namespace) -> int:
     import time
@@ -187,6 +247,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="where to write (default checkpoints/avg_forward.json)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_fit_avg_forward)
+
+    p = sub.add_parser("collect", help="record expert episodes (images, poses, labels) into an episode store")
+    p.add_argument("--out", required=True, help="store folder; episodes already there are skipped (resumable)")
+    p.add_argument("--split", choices=("train", "test", "dev"), default="train")
+    p.add_argument("--episodes", type=int, default=None, help="how many environments of the split (default 750)")
+    p.add_argument("--env-ids", default=None, help="'A:B' or '3,17,42' instead of a split")
+    p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_collect)
+
+    p = sub.add_parser("train", help="train a model: supervised on expert data, or DAggerFM")
+    train_sub = p.add_subparsers(dest="mode", required=True)
+    t = train_sub.add_parser("supervised", help="supervised learning on an episode store, resumable")
+    t.add_argument("--data", required=True, help="episode store of expert training data (gsmn collect)")
+    t.add_argument("--dev", default=None, help="episode store validated on after every epoch")
+    t.add_argument("--run", required=True, help="run folder: config, log.jsonl, state/, checkpoint/; "
+                   "an existing run resumes where it stopped")
+    t.add_argument("--kind", default="gsmn", help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem")
+    t.add_argument("--init", default=None, help="start from this checkpoint's weights")
+    add_config_arguments(t)
+    t.set_defaults(func=cmd_train_supervised)
+    t = train_sub.add_parser("dagger", help="DAggerFM from a supervised checkpoint (paper Algorithm 1), resumable")
+    t.add_argument("--init", required=True, help="the supervised checkpoint to start from (pi_1)")
+    t.add_argument("--data", required=True, help="the expert episode store the initial dataset is sampled from")
+    t.add_argument("--dev", default=None, help="episode store validated on after every iteration")
+    t.add_argument("--run", required=True, help="run folder (holds the dataset of M rollouts); resumes")
+    t.add_argument("--env-ids", default=None, help="environments for rollouts (default: those of --data)")
+    add_config_arguments(t)
+    t.set_defaults(func=cmd_train_dagger)
 
     p = sub.add_parser("serve", help="serve the browser view (for now a world preview; the dashboard later)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")

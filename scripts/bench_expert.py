@@ -37,7 +37,8 @@ def main() -> None:
                 dt = time.perf_counter() - t
                 rates.append(60 * len(records) / dt)
                 step_rates.append(sum(r.steps for r in records) / dt)
-            print(f"{str(render):>7} {workers:8d} {statistics.median(rates):13.1f} {statistics.median(step_rates):9.1f}")
+            rate, step_rate = statistics.median(rates), statistics.median(step_rates)
+            print(f"{str(render):>7} {workers:8d} {rate:13.1f} {step_rate:9.1f}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,175 @@
+"""DAggerFM: DAgger with a fixed-size dataset (paper: Learning, Algorithm 1).
+
+    D <- M episodes sampled from the expert data D*;  pi_1 <- the supervised policy (--init)
+    for i = 1..K:
+        discard N_D episodes of D uniformly at random
+        beta <- beta0 ** i;  pi_hat_i <- per step, the expert with probability beta, else pi_i
+        D_i <- N_D rollouts of pi_hat_i, labelled by the expert;  D <- D u D_i
+        pi_{i+1} <- one epoch on D (the optimizer's state carries over: the original rebuilt it, losing it)
+
+Rollouts fly in parallel worker processes that load the current policy from `run/policy/` (a checkpoint
+written before each collection); a rollout is cut when the drone strays 4.5 m from the path. The run is
+resumable after a kill at any point: each phase writes down what it will do (the keys to discard, the
+rollouts to fly) in the saved state before doing it, episodes are written atomically, and the epoch
+resumes batch by batch as in supervised training.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gsmn.config import RunConfig
+from gsmn.model.checkpoint import load_policy, save_checkpoint
+from gsmn.task.rollout import task_for_env
+from gsmn.training.collect import MixturePolicy, record_episode
+from gsmn.training.run import RunFolder, TrainState
+from gsmn.training.store import EpisodeStore
+from gsmn.training.supervised import Logger, finish_epoch, make_model_and_optimizer, run_epoch
+from gsmn.world.env import Env
+
+
+def beta_schedule(beta0: float, iteration: int) -> float:
+    """beta_i = beta0 ** i for iteration i = 1, 2, ... (the original's 0.92 ** (i + 1) counted from 0)."""
+    return beta0**iteration
+
+
+def _rng(seed: int, *keys: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, *keys]))
+
+
+# -- rollout workers --------------------------------------------------------------------------------
+_worker: dict = {}
+
+
+def _init_worker(config: RunConfig, dataset_root: str, policy_dir: str) -> None:
+    torch.set_num_threads(1)
+    _worker.update(config=config, env=Env(config), store=EpisodeStore(dataset_root), policy_dir=policy_dir,
+                   iteration=None, learner=None)
+
+
+def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
+    """Fly one mixture rollout and write it; returns (key, expert steps, learner steps)."""
+    key, env_id, iteration, beta, seed = job
+    w = _worker
+    config: RunConfig = w["config"]
+    if w["iteration"] != iteration:  # the policy changes once per iteration
+        w["learner"], w["iteration"] = load_policy(w["policy_dir"]), iteration
+    policy = MixturePolicy(config, learner=w["learner"], beta=beta, rng=_rng(seed),
+                           max_deviation=config.dagger.max_deviation)
+    sample = record_episode(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
+    w["store"].write(key, sample, meta={"env_id": env_id, "iteration": iteration, "beta": beta,
+                                        "expert_steps": policy.expert_steps, "learner_steps": policy.learner_steps})
+    return key, policy.expert_steps, policy.learner_steps
+
+
+# -- the algorithm ----------------------------------------------------------------------------------
+def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
+                 dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
+                 stop_after: Callable[[TrainState], bool] | None = None) -> Path:
+    """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
+
+    Rollouts are drawn from `env_ids` (default: the environments of the expert store)."""
+    torch.set_num_threads(config.train.threads)
+    dc, seed = config.dagger, config.train.seed
+    run = RunFolder(run_dir)
+    run.start(config)
+    dataset = EpisodeStore(run.root / "dataset")
+    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init)
+    if run.has_state():
+        state = run.load_state(model, optimizer)
+    else:
+        state = TrainState(epoch=0, extra={"phase": "start"})
+    run.trim_log(state.epoch)
+    expert_keys = expert_store.keys()
+    if env_ids is None:
+        env_ids = sorted({expert_store.read_with_meta(k)[1].get("env_id", -1) for k in expert_keys} - {-1})
+    if not env_ids:
+        raise ValueError("no environments to roll out in: give env_ids or an expert store with env ids")
+
+    if state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
+        chosen = _rng(seed, 0).choice(len(expert_keys), size=min(dc.dataset_size, len(expert_keys)), replace=False)
+        for i in sorted(chosen):
+            _link(expert_store.path(expert_keys[i]), dataset.path(expert_keys[i]))
+        state.extra = {"phase": "discard"}
+        run.save_state(model, optimizer, state)
+
+    pool = None
+    try:
+        while state.epoch < dc.iterations:
+            i = state.epoch + 1  # iteration index, from 1
+            beta = beta_schedule(dc.beta0, i)
+            if state.extra["phase"] == "discard":
+                keys = dataset.keys()
+                rng = _rng(seed, i)
+                drop = [keys[j] for j in rng.choice(len(keys), size=min(dc.rollouts_per_iteration, len(keys)),
+                                                     replace=False)]
+                new_envs = [int(e) for e in rng.choice(env_ids, size=dc.rollouts_per_iteration, replace=True)]
+                jobs = [(f"dagger_{i:04d}_{k:03d}_env_{e:06d}", e, i, beta, int(rng.integers(2**31)))
+                        for k, e in enumerate(new_envs)]
+                state.extra = {"phase": "collect", "drop": drop, "jobs": jobs}
+                run.save_state(model, optimizer, state)
+            if state.extra["phase"] == "collect":
+                for key in state.extra["drop"]:
+                    dataset.delete(key)
+                save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
+                todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
+                if todo:
+                    pool = pool or _make_pool(config, dataset, run.root / "policy")
+                    for _ in pool.map(_rollout_one, todo):
+                        pass
+                state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"])}
+                run.save_state(model, optimizer, state)
+            if state.extra["phase"] == "train":
+                if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
+                                 stop_after):
+                    return run.checkpoint_dir
+                mix = state.extra["mix"]
+                record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
+                          "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
+                state.extra = {"phase": "discard"}
+                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log)
+                if stop_after and stop_after(state):
+                    break
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return run.checkpoint_dir
+
+
+def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=config.dagger.workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_init_worker, initargs=(config, str(dataset.root), str(policy_dir)))
+
+
+def _mixture_counts(dataset: EpisodeStore, jobs: list) -> dict[str, int]:
+    expert = learner = 0
+    for key, *_ in jobs:
+        meta = dataset.read_with_meta(key)[1]
+        expert += meta["expert_steps"]
+        learner += meta["learner_steps"]
+    return {"expert": expert, "learner": learner}
+
+
+def _link(src: Path, dst: Path) -> None:
+    if dst.exists():
+        return
+    try:
+        os.link(src, dst)
+    except OSError:  # another file system: copy
+        shutil.copy2(src, dst)
+
+
+def _kind_of(checkpoint: Path) -> str:
+    meta = Path(checkpoint) / "meta.json"
+    if not meta.is_file():
+        raise FileNotFoundError(f"--init {checkpoint} is not a checkpoint folder (no meta.json)")
+    return json.loads(meta.read_text())["kind"]

@@ -1,0 +1,120 @@
+"""A training run's folder: resolved config, per-epoch log, resumable state and the resulting checkpoint.
+
+    run_dir/
+      config.json         the resolved RunConfig (written once; a resumed run must match it)
+      log.jsonl           one JSON object per finished epoch (or DAgger iteration)
+      state/              everything needed to resume: model weights (safetensors), optimizer state,
+                          counters and running sums (JSON). Replaced atomically: a kill at any moment
+                          leaves either the previous state or the new one, never half of one.
+      checkpoint/         the latest model checkpoint (gsmn.model.checkpoint format)
+
+Optimizer state is saved with torch.save and read back with weights_only=True: tensors and plain
+containers only, never code.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from gsmn.config import RunConfig
+
+
+class RunError(ValueError):
+    """A run folder cannot be used (e.g. resumed with a different configuration)."""
+
+
+@dataclass
+class TrainState:
+    """Counters of a run. `batch` counts batches finished in the current epoch (or iteration)."""
+
+    epoch: int = 0
+    batch: int = 0
+    step: int = 0
+    sums: dict[str, float] = field(default_factory=dict)  # running sums of logged values this epoch
+    counts: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0  # training time spent so far
+    extra: dict[str, Any] = field(default_factory=dict)  # e.g. DAgger's dataset contents
+
+
+class RunFolder:
+    def __init__(self, root: Path | str):
+        self.root = Path(root)
+
+    @property
+    def state_dir(self) -> Path:
+        return self.root / "state"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.root / "checkpoint"
+
+    @property
+    def log_path(self) -> Path:
+        return self.root / "log.jsonl"
+
+    def start(self, config: RunConfig) -> None:
+        """Create the folder, or check that an existing one was made with the same configuration."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        path = self.root / "config.json"
+        if path.is_file():
+            saved = json.loads(path.read_text())
+            if saved != json.loads(config.to_json()):
+                raise RunError(f"{self.root} holds a run with a different configuration; use a new run folder "
+                               "or the same settings to resume it")
+        else:
+            _write_atomic(path, config.to_json() + "\n")
+
+    def has_state(self) -> bool:
+        return (self.state_dir / "state.json").is_file() or (self.root / "state.old" / "state.json").is_file()
+
+    def save_state(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer, state: TrainState) -> None:
+        tmp = self.root / "state.tmp"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, tmp / "weights.safetensors")
+        torch.save(optimizer.state_dict(), tmp / "optimizer.pt")
+        (tmp / "state.json").write_text(json.dumps(asdict(state)))
+        old = self.root / "state.old"
+        if old.exists():
+            shutil.rmtree(old)
+        if self.state_dir.exists():
+            self.state_dir.rename(old)
+        tmp.rename(self.state_dir)
+        shutil.rmtree(old, ignore_errors=True)
+
+    def load_state(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> TrainState:
+        if not self.has_state() and (self.root / "state.old" / "state.json").is_file():
+            (self.root / "state.old").rename(self.state_dir)  # killed between the two renames
+        model.load_state_dict(load_file(self.state_dir / "weights.safetensors"))
+        optimizer.load_state_dict(torch.load(self.state_dir / "optimizer.pt", weights_only=True))
+        return TrainState(**json.loads((self.state_dir / "state.json").read_text()))
+
+    def log(self, record: dict) -> None:
+        with self.log_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def read_log(self) -> list[dict]:
+        if not self.log_path.is_file():
+            return []
+        return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
+
+    def trim_log(self, epochs: int) -> None:
+        """Keep the first `epochs` records: a run killed after logging but before saving its state logs that
+        epoch again when it resumes."""
+        records = self.read_log()
+        if len(records) > epochs:
+            _write_atomic(self.log_path, "".join(json.dumps(r) + "\n" for r in records[:epochs]))
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)

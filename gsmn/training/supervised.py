@@ -1,0 +1,187 @@
+"""Supervised learning on expert episodes with every objective (paper: Learning, Auxiliary Objectives;
+Hyper-parameters: Adam, lr 0.001, L2 1e-6).
+
+One `train_step` and a short loop over epochs. Validation on the dev store after every epoch logs the
+loss terms and the accuracies the paper plots (its Figure 4). Every random choice of a batch (episode
+order, dropout, sampled negative goal cells) is seeded from (seed, epoch, batch), so a run killed at any
+point and resumed from its saved state trains exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gsmn.config import RunConfig
+from gsmn.model.batch import collate
+from gsmn.model.checkpoint import load_checkpoint, save_checkpoint
+from gsmn.model.losses import compute_losses
+from gsmn.model.models import Model, build_model, forward_batch
+from gsmn.model.vocabulary import Vocabulary
+from gsmn.training.run import RunFolder, TrainState
+from gsmn.training.store import EpisodeStore
+
+Logger = Callable[[str], None]
+
+
+def batch_seed(seed: int, epoch: int, batch: int) -> int:
+    return int(np.random.SeedSequence([seed, epoch, batch]).generate_state(1)[0])
+
+
+def epoch_batches(keys: list[str], batch_size: int, seed: int, epoch: int) -> list[list[str]]:
+    """The episodes of each batch of an epoch, shuffled by (seed, epoch)."""
+    order = np.random.default_rng(np.random.SeedSequence([seed, epoch])).permutation(len(keys))
+    return [[keys[i] for i in order[k:k + batch_size]] for k in range(0, len(keys), batch_size)]
+
+
+def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vocabulary: Vocabulary,
+               config: RunConfig, seed: int) -> dict[str, float]:
+    """One optimizer step on a batch of episodes; returns the loss terms and accuracies as floats."""
+    torch.manual_seed(seed)  # dropout
+    generator = torch.Generator().manual_seed(seed)  # pose noise, sampled negatives
+    batch = collate(samples, vocabulary)
+    model.train()
+    outputs = forward_batch(model, batch, generator=generator)
+    losses = compute_losses(model, batch, outputs, config.loss, generator=generator)
+    optimizer.zero_grad(set_to_none=True)
+    losses.total.backward()
+    optimizer.step()
+    return flatten(losses, frames=int(batch.mask.sum()))
+
+
+def flatten(losses, frames: int) -> dict[str, float]:
+    out = {"loss": float(losses.total.detach()), "frames": float(frames)}
+    out.update({f"loss_{k}": float(v.detach()) for k, v in losses.terms.items()})
+    out.update({f"acc_{k}": v for k, v in losses.accuracies.items()})
+    return out
+
+
+@torch.inference_mode()
+def validate(model: Model, store: EpisodeStore, vocabulary: Vocabulary, config: RunConfig,
+             batch_size: int, seed: int = 0) -> dict[str, float]:
+    """Mean loss terms and accuracies over a store, in eval mode, with fixed sampled negatives."""
+    model.eval()
+    sums: dict[str, float] = {}
+    counts: dict[str, int] = {}
+    keys = store.keys()
+    for k in range(0, len(keys), batch_size):
+        generator = torch.Generator().manual_seed(seed + k)
+        batch = collate([store.read(key) for key in keys[k:k + batch_size]], vocabulary)
+        outputs = forward_batch(model, batch, generator=generator)
+        _accumulate(sums, counts, flatten(compute_losses(model, batch, outputs, config.loss, generator=generator),
+                                          frames=int(batch.mask.sum())))
+    return _means(sums, counts)
+
+
+SUMMED = ("frames", "seconds")  # totals over an epoch; everything else is a mean over batches
+
+
+def _accumulate(sums: dict[str, float], counts: dict[str, int], values: dict[str, float]) -> None:
+    for name, value in values.items():
+        if name in SUMMED:
+            sums[name], counts[name] = sums.get(name, 0.0) + value, 1
+        elif not math.isnan(value):
+            sums[name] = sums.get(name, 0.0) + value
+            counts[name] = counts.get(name, 0) + 1
+
+
+def _means(sums: dict[str, float], counts: dict[str, int]) -> dict[str, float]:
+    return {name: sums[name] / counts[name] for name in sums}
+
+
+def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None
+                             ) -> tuple[Model, Vocabulary, torch.optim.Optimizer]:
+    if init is not None:
+        model, _, vocabulary, _ = load_checkpoint(init)
+        if model.kind != kind:
+            raise ValueError(f"--init {init} holds a {model.kind!r} model, not {kind!r}")
+    else:
+        vocabulary = Vocabulary.default()
+        torch.manual_seed(config.train.seed)  # the initial weights, too, are a function of the config
+        model = build_model(kind, config, vocabulary)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.learning_rate,
+                                 weight_decay=config.train.weight_decay)
+    return model, vocabulary, optimizer
+
+
+def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
+              config: RunConfig, store: EpisodeStore, keys: list[str], state: TrainState, epoch: int,
+              stop_after: Callable[[TrainState], bool] | None = None) -> bool:
+    """Train on the batches of `epoch` from `state.batch` on, saving state every `save_every_seconds`.
+    Returns False when `stop_after` ended it early (state saved), True when the epoch is done."""
+    tc = config.train
+    batches = epoch_batches(keys, tc.batch_size, tc.seed, epoch)
+    last_save = time.monotonic()
+    while state.batch < len(batches):
+        t0 = time.monotonic()
+        samples = [store.read(key) for key in batches[state.batch]]
+        values = train_step(model, optimizer, samples, vocabulary, config, batch_seed(tc.seed, epoch, state.batch))
+        values["seconds"] = time.monotonic() - t0
+        _accumulate(state.sums, state.counts, values)
+        state.batch += 1
+        state.step += 1
+        state.seconds += values["seconds"]
+        if time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches):
+            run.save_state(model, optimizer, state)
+            last_save = time.monotonic()
+            if stop_after and stop_after(state):
+                return False
+    return True
+
+
+def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
+                 config: RunConfig, state: TrainState, record: dict, dev_store: EpisodeStore | None,
+                 log: Logger) -> None:
+    """Validate, log, write the checkpoint, and save the state of the next epoch."""
+    record.update(step=state.step, seconds=round(state.seconds, 1), train=_means(state.sums, state.counts))
+    if dev_store is not None and len(dev_store):
+        record["dev"] = validate(model, dev_store, vocabulary, config, config.train.batch_size)
+    run.log(record)
+    log(_summary_line(record))
+    save_checkpoint(run.checkpoint_dir, model, config, vocabulary, meta={"step": state.step, "metrics": record})
+    state.epoch, state.batch, state.sums, state.counts = state.epoch + 1, 0, {}, {}
+    run.save_state(model, optimizer, state)
+
+
+def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_store: EpisodeStore,
+                     dev_store: EpisodeStore | None = None, init: Path | None = None,
+                     log: Logger = print, stop_after: Callable[[TrainState], bool] | None = None) -> Path:
+    """Train (or resume training) `kind` on `train_store`; returns the checkpoint folder.
+
+    `stop_after(state)` is asked after every saved state and may end the call early (the run stays
+    resumable); tests use it, the command line does not."""
+    torch.set_num_threads(config.train.threads)
+    run = RunFolder(run_dir)
+    run.start(config)
+    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
+    state = run.load_state(model, optimizer) if run.has_state() else TrainState()
+    run.trim_log(state.epoch)
+    keys = train_store.keys()
+    if not keys:
+        raise ValueError(f"no episodes in {train_store.root}; collect some with `gsmn collect`")
+    while state.epoch < config.train.epochs:
+        if not run_epoch(run, model, optimizer, vocabulary, config, train_store, keys, state, state.epoch, stop_after):
+            return run.checkpoint_dir
+        finish_epoch(run, model, optimizer, vocabulary, config, state, {"epoch": state.epoch + 1}, dev_store, log)
+        if stop_after and stop_after(state):
+            break
+    return run.checkpoint_dir
+
+
+def _summary_line(record: dict) -> str:
+    def part(name: str, values: dict) -> str:
+        accs = " ".join(f"{k[4:]} {100 * v:.0f}%" for k, v in values.items() if k.startswith("acc_"))
+        return f"{name}: loss {values.get('loss', float('nan')):.4f} action {values.get('loss_action', 0):.4f} {accs}"
+
+    train = record["train"]
+    fps = train.get("frames", 0) / max(train.get("seconds", 0), 1e-9)
+    head = ", ".join(f"{k} {v}" for k, v in record.items() if k in ("epoch", "iteration", "beta", "dataset"))
+    line = f"{head} ({train.get('seconds', 0):.0f} s, {fps:.0f} frames/s) " + part("train", train)
+    if "dev" in record:
+        line += " | " + part("dev", record["dev"])
+    return line

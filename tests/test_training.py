@@ -1,0 +1,133 @@
+"""Supervised training: the tiny preset trains end to end, and a run killed at any point resumes exactly."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from gsmn.config import preset, with_overrides
+from gsmn.model.checkpoint import load_checkpoint
+from gsmn.training.collect import collect_expert
+from gsmn.training.dagger import train_dagger
+from gsmn.training.run import RunError, RunFolder
+from gsmn.training.store import EpisodeStore
+from gsmn.training.supervised import train_supervised
+
+# Short episodes (the first 20 steps of the expert's flight) keep these tests to seconds.
+FLAGS = {"task.horizon": "20", "train.epochs": "3", "train.batch_size": "2", "train.save_every_seconds": "0"}
+CONFIG = with_overrides(preset("tiny"), FLAGS)
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory) -> tuple[EpisodeStore, EpisodeStore]:
+    root = tmp_path_factory.mktemp("data")
+    train, dev = EpisodeStore(root / "train"), EpisodeStore(root / "dev")
+    collect_expert(train, [0, 1, 2, 3], CONFIG, workers=2)
+    collect_expert(dev, [85, 86], CONFIG)
+    return train, dev
+
+
+def test_tiny_preset_trains_end_to_end_and_its_loss_falls(stores, tmp_path):
+    train, dev = stores
+    lines = []
+    checkpoint = train_supervised(tmp_path / "run", "gsmn", CONFIG, train, dev, log=lines.append)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in log] == [1, 2, 3] and len(lines) == 3
+    assert log[-1]["train"]["loss"] < log[0]["train"]["loss"]
+    assert log[-1]["dev"]["loss_action"] < log[0]["dev"]["loss_action"]
+    for name in ("acc_perception", "acc_grounding", "acc_goal", "acc_instruction_landmark", "acc_instruction_side"):
+        assert 0.0 <= log[-1]["dev"][name] <= 1.0, name
+    model, config, _, meta = load_checkpoint(checkpoint)
+    assert model.kind == "gsmn" and config == CONFIG and meta["metrics"]["epoch"] == 3
+    # Training again in the same folder resumes a finished run: nothing more to do, nothing lost.
+    train_supervised(tmp_path / "run", "gsmn", CONFIG, train, dev, log=lines.append)
+    assert len(lines) == 3
+    with pytest.raises(RunError, match="different configuration"):
+        train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.epochs": "4"}), train, dev)
+
+
+def _cli(run: Path, data: Path) -> list[str]:
+    args = [sys.executable, "-m", "gsmn.cli", "train", "supervised", "--data", str(data), "--run", str(run),
+            "--preset", "tiny"]
+    for key, value in FLAGS.items():
+        args += ["--" + key.replace("_", "-"), value]
+    return args
+
+
+def test_a_killed_run_resumes_to_the_same_state_as_an_uninterrupted_one(stores, tmp_path):
+    train, _ = stores
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    subprocess.run(_cli(whole, train.root), check=True, capture_output=True)
+    # Kill the second run with SIGKILL once it has saved state in the middle of its second epoch.
+    proc = subprocess.Popen(_cli(killed, train.root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline:
+            state = killed / "state" / "state.json"
+            try:
+                if state.is_file() and json.loads(state.read_text())["step"] >= 3:
+                    break
+            except (json.JSONDecodeError, KeyError):
+                pass  # caught mid-rename; look again
+            assert proc.poll() is None, "the run finished before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    subprocess.run(_cli(killed, train.root), check=True, capture_output=True)
+    a = load_file(whole / "checkpoint" / "weights.safetensors")
+    b = load_file(killed / "checkpoint" / "weights.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    log_a = (whole / "log.jsonl").read_text().splitlines()
+    log_b = (killed / "log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["train"]["loss"] for x in log_a] == [json.loads(x)["train"]["loss"] for x in log_b]
+
+
+DAGGER = with_overrides(CONFIG, {"train.epochs": "1", "dagger.iterations": "2", "dagger.rollouts_per_iteration": "2",
+                                 "dagger.dataset_size": "3", "dagger.beta0": "0.5", "dagger.workers": "1"})
+
+
+@pytest.fixture(scope="module")
+def supervised_checkpoint(stores, tmp_path_factory) -> Path:
+    train, _ = stores
+    return train_supervised(tmp_path_factory.mktemp("sup") / "run", "gsmn", DAGGER, train, log=lambda s: None)
+
+
+def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, supervised_checkpoint, tmp_path):
+    train, dev = stores
+    checkpoint = train_dagger(tmp_path / "dagger", supervised_checkpoint, DAGGER, train, dev, log=lambda s: None)
+    log = [json.loads(line) for line in (tmp_path / "dagger" / "log.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in log] == [1, 2]
+    assert [r["beta"] for r in log] == [0.5, 0.25]
+    assert all(r["dataset"] == 3 for r in log), "the dataset stays at M rollouts"
+    assert 0 < log[0]["learner_step_fraction"] <= log[1]["learner_step_fraction"] < 1
+    dataset = EpisodeStore(tmp_path / "dagger" / "dataset")
+    new = [k for k in dataset.keys() if k.startswith("dagger_")]
+    assert new and all(dataset.read_with_meta(k)[1]["learner_steps"] >= 0 for k in new)
+    assert sum(dataset.read_with_meta(k)[1]["learner_steps"] for k in new) > 0
+    assert len(train) == 4, "discarding from the DAgger dataset never touches the expert store"
+    model, *_ = load_checkpoint(checkpoint)
+    assert model.kind == "gsmn"
+
+
+def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervised_checkpoint, tmp_path):
+    train, _ = stores
+    whole = train_dagger(tmp_path / "whole", supervised_checkpoint, DAGGER, train, log=lambda s: None)
+    stops = iter([True])  # stop at the first saved state inside an epoch, then run to the end
+    train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None,
+                 stop_after=lambda state: state.batch > 0 and next(stops, False))
+    assert not (tmp_path / "parts" / "log.jsonl").is_file() or len(RunFolder(tmp_path / "parts").read_log()) < 2
+    parts = train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None)
+    a, b = load_file(whole / "weights.safetensors"), load_file(parts / "weights.safetensors")
+    assert all(torch.equal(a[k], b[k]) for k in a)
