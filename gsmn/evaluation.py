@@ -32,7 +32,8 @@ from gsmn.world.spec import split_env_ids
 
 REPO_ROOT = Path(gsmn.__file__).resolve().parents[1]
 AVG_FORWARD_PATH = REPO_ROOT / "checkpoints" / "avg_forward.json"
-SYSTEMS = TRIVIAL_SYSTEMS
+LEARNED_SYSTEMS = ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem")
+SYSTEMS = LEARNED_SYSTEMS + TRIVIAL_SYSTEMS
 
 
 def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None) -> Policy:
@@ -44,6 +45,14 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
         return RandomLandmarkPolicy(config)
     if system == "avg-forward":
         return AvgForwardPolicy(AverageAction.load(Path(checkpoint) if checkpoint else AVG_FORWARD_PATH))
+    if system in LEARNED_SYSTEMS:
+        from gsmn.model.checkpoint import load_policy
+
+        folder = Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system
+        policy = load_policy(folder)
+        if policy.model.kind != system:
+            raise ValueError(f"{folder} holds a {policy.model.kind!r} model, not {system!r}")
+        return policy
     raise ValueError(f"unknown system {system!r}; available: {', '.join(SYSTEMS)}")
 
 
@@ -74,7 +83,12 @@ def env_ids_for(split: str | None, episodes: int | None, env_ids: str | None) ->
 _worker: dict = {}
 
 
-def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None) -> None:
+def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None,
+                 threads: int | None = None) -> None:
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
     policy = make_policy(system, config, checkpoint)
     render = policy.needs_images if render is None else render
     _worker.update(config=config, policy=policy, env=Env(config, render=render))
@@ -106,7 +120,7 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
         return records
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                             initargs=(system, config, checkpoint, render)) as pool:
+                             initargs=(system, config, checkpoint, render, 1)) as pool:  # a core each
         for record in pool.map(_run_one, env_ids):
             records.append(record)
             if on_episode:

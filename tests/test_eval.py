@@ -126,3 +126,21 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "nope", "--env-ids", "70"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown system" in bad.stderr
+
+
+def test_learned_systems_load_from_checkpoints(tmp_path):
+    from gsmn.model.checkpoint import CheckpointError, save_checkpoint
+    from gsmn.model.models import build_model
+    from gsmn.model.vocabulary import Vocabulary
+
+    vocabulary = Vocabulary.default()
+    save_checkpoint(tmp_path / "gsmn", build_model("gsmn", TINY, vocabulary), TINY, vocabulary)
+    policy = make_policy("gsmn", TINY, tmp_path / "gsmn")
+    assert policy.needs_images and policy.model.kind == "gsmn"
+    with Env(TINY) as env:
+        record = rollout(env, policy, task_for_env(70, TINY), horizon=3)
+    assert record.system == "gsmn" and len(record.actions) >= 1
+    with pytest.raises(ValueError, match="not 'gs-fpv'"):
+        make_policy("gs-fpv", TINY, tmp_path / "gsmn")
+    with pytest.raises(CheckpointError, match="missing"):
+        make_policy("gsmn", TINY, tmp_path / "missing")

@@ -34,7 +34,7 @@ FORMAT = 1
 FILES = ("weights.safetensors", "config.json", "vocabulary.json", "meta.json")
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(ValueError):
     """A checkpoint folder is missing, malformed, or does not fit its model."""
 
 
