@@ -279,7 +279,7 @@ class DaggerConfig:
     iterations: int = _f(150, "DAggerFM iterations, one epoch over the dataset each")
     rollouts_per_iteration: int = _f(24, "N_D: rollouts discarded and collected anew each iteration")
     dataset_size: int = _f(500, "M: rollouts kept in the dataset (discarding uniformly at random)")
-    beta0: float = _f(0.92, "the expert acts with probability beta_i = beta0 ** (i + 1) at each step")
+    beta0: float = _f(0.92, "the expert acts with probability beta_i = beta0 ** i at each step of iteration i >= 1")
     max_deviation: float = _f(4.5, "a rollout is cut when the drone strays this far from the path (m)")
     workers: int = _f(2, "parallel rollout worker processes")
     split: str = _f("train", "environments rollouts are drawn from")
