@@ -1,4 +1,11 @@
-"""Draw a WorldSpec into a viser scene with the same meshes the simulator uses (assets/landmarks)."""
+"""The 3D scene (viser): the world with the simulator's own meshes, the task (demonstration path, goal, the
+success region with its correct quadrant), the drone with its camera frustum showing the live image, the
+flown path, and the model's maps as images on the ground.
+
+Frames: world x east, y north, z up (docs/design.md). Maps are north-up pictures (row 0 at y = 30), placed on
+the field by a half-turn about x, since viser draws an image's row 0 towards local -y. Colours follow the
+paper's figures: demonstration red, policy blue, success quadrant green; the counterfactual's goal is gold.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +14,19 @@ import math
 import numpy as np
 import viser
 
+from app.colors import png_bytes, upscale, with_alpha
+from gsmn.task.instructions import Instruction
 from gsmn.world.assets import AssetModel
 from gsmn.world.spec import WorldSpec
+
+DEMO_RGB = (220, 40, 40)
+POLICY_RGB = (40, 110, 245)
+QUADRANT_RGB = (60, 200, 90)
+COUNTERFACTUAL_RGB = (245, 190, 30)
+MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the texture's linear filtering
+LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}
+NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
+TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 
 
 def yaw_wxyz(yaw: float) -> tuple[float, float, float, float]:
@@ -32,17 +50,15 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
     """(Re)draw field, lakes and landmarks under /world; replaces what was there."""
     by_name = {m.name: m for m in catalogue}
     L = world.field_size
+    if _has(scene, "/world"):
+        scene.remove_by_name("/world")
     scene.add_frame("/world", show_axes=False)  # children are placed relative to their parent
     scene.add_box("/world/field", color=(92, 150, 62), dimensions=(L, L, 0.02), position=(L / 2, L / 2, -0.011),
                   flat_shading=True, cast_shadow=False)
     scene.add_grid("/world/grid", width=L, height=L, cell_size=1.5, section_size=7.5, position=(L / 2, L / 2, 0.002),
                    cell_color=(84, 140, 58), section_color=(70, 118, 48), shadow_opacity=0.0)
     for i, lake in enumerate(world.lakes):
-        n = 48
-        t = np.linspace(0, 2 * math.pi, n, endpoint=False)
-        ring = np.stack([lake.radius_x * np.cos(t), lake.radius_y * np.sin(t), np.full(n, 0.005)], 1)
-        verts = np.vstack([[0, 0, 0.005], ring]).astype(np.float32)
-        faces = np.array([[0, 1 + k, 1 + (k + 1) % n] for k in range(n)], dtype=np.int32)
+        verts, faces = _fan(np.zeros(2), lake.radius_x, lake.radius_y, 0.0, 2 * math.pi, 48, 0.005)
         scene.add_mesh_simple(f"/world/lake_{i}", verts, faces, color=(51, 107, 191), wxyz=yaw_wxyz(lake.yaw),
                               position=(lake.x, lake.y, 0.0), cast_shadow=False)
     for i, lm in enumerate(world.landmarks):
@@ -54,3 +70,185 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
                                   scale=lm.scale, flat_shading=True)
         scene.add_label(f"/world/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, model.height * lm.scale + 0.6),
                         anchor="bottom-center")
+
+
+def _has(scene: viser.SceneApi, name: str) -> bool:
+    return name in getattr(scene, "_handle_from_node_name", {})
+
+
+def _fan(centre: np.ndarray, rx: float, ry: float, start: float, end: float, n: int, z: float
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """A filled ellipse sector as a triangle fan: vertices (n + 2, 3) float32, faces (n, 3) int32."""
+    t = np.linspace(start, end, n + 1)
+    rim = np.stack([centre[0] + rx * np.cos(t), centre[1] + ry * np.sin(t), np.full(n + 1, z)], 1)
+    verts = np.vstack([[centre[0], centre[1], z], rim]).astype(np.float32)
+    faces = np.array([[0, 1 + k, 2 + k] for k in range(n)], dtype=np.int32)
+    return verts, faces
+
+
+def quadrant_angles(world: WorldSpec, instruction: Instruction) -> tuple[float, float]:
+    """The success quadrant of an instruction around its landmark as (start, end) angles, counter-clockwise
+    (gsmn.task.metrics.side_of: back around d = landmark - start, front around -d, left counter-clockwise)."""
+    lm = world.landmarks[instruction.landmark_index]
+    d = math.atan2(lm.y - world.start_y, lm.x - world.start_x)
+    centre = d + {"back": 0.0, "front": math.pi, "left": math.pi / 2, "right": -math.pi / 2}[instruction.side]
+    return centre - math.pi / 4, centre + math.pi / 4
+
+
+def _segments(points: np.ndarray) -> np.ndarray:
+    """Polyline (N, 3) -> segments (N - 1, 2, 3)."""
+    return np.stack([points[:-1], points[1:]], 1).astype(np.float32)
+
+
+def set_png(handle: viser.ImageHandle, rgba: np.ndarray) -> None:
+    """Replace a scene image with a PNG encoded by Pillow at low compression: viser's own encoder (imageio) takes
+    about 5 ms for a 256 x 256 map and Pillow 1.3 ms, and the page draws three maps a step. The handle's
+    `_image` / `_data` are what viser's own `image` setter assigns (viser 1.1)."""
+    handle._image = rgba
+    handle._data = png_bytes(rgba)
+
+
+class SceneView:
+    """The dynamic parts of the scene, by name. All methods expect to be called inside `server.atomic()`."""
+
+    def __init__(self, server: viser.ViserServer, catalogue: tuple[AssetModel, ...], success_radius: float,
+                 vfov_deg: float, aspect: float):
+        self.server = server
+        self.scene = server.scene
+        self.catalogue = catalogue
+        self.success_radius = success_radius
+        self.vfov = math.radians(vfov_deg)
+        self.aspect = aspect
+        self.layers: dict[str, viser.ImageHandle] = {}
+        self.frustum: viser.CameraFrustumHandle | None = None
+        self.body = None
+        self.world: WorldSpec | None = None
+        self.show_task = True
+
+    def draw_world(self, world: WorldSpec, on_ground_click=None) -> None:
+        """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field."""
+        draw_world(self.scene, world, self.catalogue)
+        self.world = world
+        if on_ground_click is not None:
+            field = self.scene._handle_from_node_name.get("/world/field")
+
+            @field.on_click
+            def _(event: viser.SceneNodePointerEvent) -> None:
+                (ox, oy, oz), (dx, dy, dz) = event.ray_origin, event.ray_direction
+                if dz < -1e-6:  # the ray meets the ground z = 0 in front of the camera
+                    t = -oz / dz
+                    on_ground_click(ox + t * dx, oy + t * dy)
+        self.layers.clear()  # they lived under /world
+        self.clear_path()
+        self.draw_counterfactual(None)
+
+    def draw_task(self, instruction: Instruction | None, path: np.ndarray | None, prefix: str = "/task",
+                  rgb: tuple[int, int, int] = QUADRANT_RGB) -> None:
+        """The named landmark's success region (radius 6 m) with the correct quadrant, the goal and the
+        demonstration path; None clears them."""
+        for name in TASK_PARTS:
+            if _has(self.scene, f"{prefix}/{name}"):
+                self.scene.remove_by_name(f"{prefix}/{name}")
+        if instruction is None or self.world is None:
+            return
+        world, r = self.world, self.success_radius
+        lm = world.landmarks[instruction.landmark_index]
+        centre = np.array([lm.x, lm.y])
+        if prefix == "/task":
+            verts, faces = _fan(centre, r, r, 0.0, 2 * math.pi, 64, 0.012)
+            self.scene.add_mesh_simple(f"{prefix}/region", verts, faces, color=(235, 235, 235), opacity=0.22,
+                                       cast_shadow=False, receive_shadow=False, visible=self.show_task)
+            ring = verts[1:].copy()
+            ring[:, 2] = 0.09
+            self.scene.add_line_segments(f"{prefix}/ring", _segments(ring), (255, 255, 255), thickness=0.1,
+                                         visible=self.show_task)
+        a0, a1 = quadrant_angles(world, instruction)
+        verts, faces = _fan(centre, r, r, a0, a1, 16, 0.016 if prefix == "/task" else 0.02)
+        self.scene.add_mesh_simple(f"{prefix}/quadrant", verts, faces, color=rgb, opacity=0.6, cast_shadow=False,
+                                   receive_shadow=False, visible=self.show_task)
+        self.scene.add_cylinder(f"{prefix}/goal", radius=0.25, height=2.0, color=rgb if prefix != "/task" else DEMO_RGB,
+                                position=(instruction.goal_x, instruction.goal_y, 1.0), cast_shadow=False,
+                                visible=self.show_task)
+        self.scene.add_label(f"{prefix}/goal_label", "goal" if prefix == "/task" else "what-if goal",
+                             position=(instruction.goal_x, instruction.goal_y, 2.3), anchor="bottom-center",
+                             visible=self.show_task)
+        if path is not None and len(path) > 1:
+            points = np.column_stack([path, np.full(len(path), 0.1)])
+            self.scene.add_line_segments(f"{prefix}/demo", _segments(points), DEMO_RGB, thickness=0.18,
+                                         visible=self.show_task)
+
+    def draw_counterfactual(self, instruction: Instruction | None) -> None:
+        self.draw_task(instruction, None, prefix="/whatif", rgb=COUNTERFACTUAL_RGB)
+
+    def set_task_visible(self, visible: bool) -> None:
+        self.show_task = visible
+        for prefix in ("/task", "/whatif"):
+            for name in TASK_PARTS:
+                handle = getattr(self.scene, "_handle_from_node_name", {}).get(f"{prefix}/{name}")
+                if handle is not None:
+                    handle.visible = visible
+
+    def set_drone(self, position: tuple[float, float, float], yaw: float, T_world_camera: np.ndarray,
+                  image: np.ndarray | None) -> None:
+        wxyz, cam_position = R_to_wxyz(T_world_camera[:3, :3]), T_world_camera[:3, 3]
+        if self.frustum is None or not _has(self.scene, "/drone/camera"):
+            self.frustum = self.scene.add_camera_frustum(
+                "/drone/camera", fov=self.vfov, aspect=self.aspect, scale=1.6, thickness=0.05,
+                image=image, format="jpeg", wxyz=wxyz, position=cam_position, color=(240, 120, 30))
+            self.body = self.scene.add_box("/drone/body", color=(30, 30, 34), dimensions=(0.5, 0.36, 0.1),
+                                           wxyz=yaw_wxyz(yaw), position=position)
+            return
+        self.frustum.wxyz, self.frustum.position = wxyz, cam_position
+        if image is not None:
+            self.frustum.image = image
+        self.body.wxyz, self.body.position = yaw_wxyz(yaw), position
+
+    def set_path(self, positions: np.ndarray) -> None:
+        """The flown path (N, 3); fewer than two points clears it."""
+        if len(positions) < 2:
+            self.clear_path()
+            return
+        points = np.asarray(positions, np.float32).copy()
+        points[:, 2] = 0.14
+        self.scene.add_line_segments("/flown", _segments(points), POLICY_RGB, thickness=0.2)
+
+    def clear_path(self) -> None:
+        if _has(self.scene, "/flown"):
+            self.scene.remove_by_name("/flown")
+
+    def set_layer(self, name: str, rgb: np.ndarray | None, alpha: np.ndarray | None, opacity: float,
+                  visible: bool) -> None:
+        """A map layer (H, W, 3) north-up on the field at its own height; `rgb` None only changes visibility."""
+        handle = self.layers.get(name)
+        if rgb is None:
+            if handle is not None:
+                handle.visible = visible
+            return
+        a = np.ones(rgb.shape[:2], np.float32) if alpha is None else alpha
+        rgba = upscale(with_alpha(rgb, a * opacity), MAP_UPSCALE)
+        if handle is None or not _has(self.scene, f"/world/map_{name}"):
+            L = self.world.field_size if self.world else 30.0
+            self.layers[name] = self.scene.add_image(
+                f"/world/map_{name}", rgba, render_width=L, render_height=L, format="png", wxyz=NORTH_UP,
+                position=(L / 2, L / 2, LAYER_HEIGHTS[name]), cast_shadow=False, receive_shadow=False,
+                visible=visible)
+        else:
+            set_png(handle, rgba)
+            handle.visible = visible
+
+    def mark_cell(self, xy: tuple[float, float] | None, cell_size: float) -> None:
+        """Outline the inspected map cell on the ground (None removes it)."""
+        if xy is None:
+            if _has(self.scene, "/inspected"):
+                self.scene.remove_by_name("/inspected")
+            return
+        x0, y0 = (np.floor(np.asarray(xy) / cell_size) * cell_size).tolist()
+        corners = np.array([[x0, y0], [x0 + cell_size, y0], [x0 + cell_size, y0 + cell_size], [x0, y0 + cell_size],
+                            [x0, y0]])
+        points = np.column_stack([corners, np.full(5, 0.12)])
+        self.scene.add_line_segments("/inspected", _segments(points), (255, 255, 255), thickness=0.12)
+
+    def clear_layers(self) -> None:
+        for name, handle in list(self.layers.items()):
+            handle.remove()
+            del self.layers[name]

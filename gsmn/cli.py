@@ -202,18 +202,27 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import time
 
-    from app.preview import Preview
+    from app.server import Dashboard
 
     config = config_from_args(args)
-    preview = Preview(config, host=args.host, port=args.port, env_id=args.env_id)
-    print(f"gsmn world preview: {preview.url}  (Ctrl+C to stop)", flush=True)
+    try:
+        dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
+                              api_port=args.api_port, env_id=args.env_id)
+    except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
+        print(f"gsmn serve: error: {e}", file=sys.stderr)
+        return 2
+    urls = dashboard.urls
+    print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
+    moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
+    print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
+    print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
     try:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
         pass
     finally:
-        preview.close()
+        dashboard.close()
     return 0
 
 
@@ -277,9 +286,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_dagger)
 
-    p = sub.add_parser("serve", help="serve the browser view (for now a world preview; the dashboard later)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")
-    p.add_argument("--port", type=int, default=8080, help="viser port (the next free one is used if taken)")
+    p = sub.add_parser("serve", help="serve the dashboard: the browser view (viser) and the HTTP API (FastAPI)")
+    p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
+                   "when it exists; without one the expert flies and the page says so)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind both servers (default: loopback only; "
+                   "neither has authentication)")
+    p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
+    p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
     p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_serve)

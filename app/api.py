@@ -1,0 +1,288 @@
+"""The HTTP API (FastAPI; OpenAPI docs at /docs): start episodes, read their results and per-step data, and
+ground counterfactual instructions on an episode's semantic map at any step.
+
+It posts the same runner commands as the page (`app.runner`), so both share one behaviour. Handlers are plain
+`def`s: FastAPI runs them on its thread pool, where waiting for the runner blocks nobody else. Every error
+answers with a JSON body {"detail": "<what was wrong>"}: 404 for unknown episodes, 409 when the request does not
+fit the state (no model loaded, no map yet), 422 for bad input (unknown words, env_id < 0, missing checkpoint),
+503 when the simulator does not answer in time.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import Literal
+
+import numpy as np
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.colors import png_bytes, upscale
+from app.commands import MAX_ENV_ID, Ground, Grounding, NotFound, RunnerError, StartEpisode
+from app.layers import LAYERS, build_layers, positive_probability
+from app.recording import Episode, EpisodeResult
+from app.runner import Runner
+
+log = logging.getLogger("gsmn.dashboard")
+COMMAND_TIMEOUT = 60.0
+
+
+# -- request and response models -----------------------------------------------------------------------------
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class EpisodeRequest(_Strict):
+    env_id: int = Field(..., ge=0, le=MAX_ENV_ID, description="environment id (id % 100: 0-69 train, 70-84 test, "
+                        "85-99 dev)", examples=[70])
+    instruction: str | None = Field(None, max_length=500, description="free text, e.g. 'go to the left side of the "
+                                    "barrel'; omitted: the environment's own instruction")
+    checkpoint: str | None = Field(None, description="a checkpoint name under checkpoints/ or a folder; omitted: "
+                                   "the default checkpoint")
+    policy: Literal["model", "expert"] = Field("model", description="who flies: the model, or the expert (with the "
+                                               "model watching, when one is loaded)")
+
+
+class EpisodeCreated(BaseModel):
+    id: int
+    status: str
+    env_id: int
+    instruction: str
+    policy: str
+
+
+class ResultModel(BaseModel):
+    success: bool
+    landmark_success: bool
+    goal_distance: float = Field(description="m, final position to the demonstration's goal")
+    landmark_distance: float = Field(description="m, final position to the named landmark's centre")
+    final_side: str = Field(description="quadrant of the final position around the named landmark")
+    steps: int
+    stopped: bool = Field(description="the policy said STOP (else the horizon ended the episode)")
+    final_x: float
+    final_y: float
+    stop_probability: float | None = Field(description="the model's P(STOP) at the last step")
+
+
+class EpisodeSummary(BaseModel):
+    id: int
+    status: Literal["queued", "running", "paused", "finished", "cancelled", "failed"]
+    env_id: int
+    split: str
+    instruction: str
+    landmark: str
+    side: str
+    goal_x: float
+    goal_y: float
+    policy: str
+    system: str
+    checkpoint: str | None
+    steps: int = Field(description="steps recorded so far")
+    horizon: int
+    steps_per_second: float | None
+    result: ResultModel | None
+    error: str | None
+
+
+class ModelStep(BaseModel):
+    v: float
+    omega: float
+    stop_probability: float
+
+
+class StepModel(BaseModel):
+    step: int
+    time: float
+    x: float
+    y: float
+    z: float
+    yaw: float
+    v: float
+    omega: float
+    stop: bool
+    model: ModelStep | None = Field(description="the model's own action at this step, when a model watched")
+
+
+class StepsResponse(BaseModel):
+    episode_id: int
+    status: str
+    steps: list[StepModel]
+
+
+class GroundRequest(_Strict):
+    episode_id: int = Field(..., ge=1)
+    instruction: str = Field(..., min_length=1, max_length=500, examples=["go to the right side of the barrel"])
+    step: int | None = Field(None, ge=0, description="the step whose semantic map to use; omitted: the latest")
+
+
+class GroundResponse(BaseModel):
+    episode_id: int
+    step: int
+    instruction: str
+    landmark: str
+    side: str
+    goal_x: float
+    goal_y: float
+    v: float = Field(description="m/s, the action the model would take")
+    omega: float = Field(description="rad/s")
+    stop_probability: float
+    seconds: float = Field(description="time the grounding took (s)")
+    relevance_probability: list[list[float]] = Field(description="P(named landmark) per world cell, north-up")
+    goal_probability: list[list[float]] = Field(description="P(goal) per world cell, north-up")
+
+
+class CheckpointModel(BaseModel):
+    name: str
+    path: str
+    kind: str | None
+    created: str | None
+    loaded: bool
+    default: bool
+    error: str | None
+    metrics: dict
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    model_loaded: bool
+    checkpoint_message: str
+    live_episode: int | None
+    episodes: int
+    viewer_url: str | None
+
+
+# -- the app --------------------------------------------------------------------------------------------------
+def _result(r: EpisodeResult | None) -> ResultModel | None:
+    return ResultModel(**r.__dict__) if r is not None else None
+
+
+def summary(e: Episode) -> EpisodeSummary:
+    i = e.task.instruction
+    return EpisodeSummary(id=e.id, status=e.status, env_id=e.env_id, split=e.task.world.split,
+                          instruction=i.text, landmark=i.noun_phrase, side=i.side, goal_x=i.goal_x, goal_y=i.goal_y,
+                          policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
+                          horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
+                          error=e.error)
+
+
+def make_api(runner: Runner, viewer_url: str | None = None) -> FastAPI:
+    app = FastAPI(title="GSMN dashboard API", version="1.0",
+                  description="Fly instructions with GSMN (Blukis et al., RSS 2018) on the MuJoCo quadcopter, read "
+                              "episodes step by step, and ground counterfactual instructions on a semantic map "
+                              "already built. The browser view runs on the viser port.")
+
+    @app.exception_handler(RunnerError)
+    def runner_error(request: Request, e: RunnerError) -> JSONResponse:
+        return JSONResponse({"detail": str(e)}, status_code=e.status)
+
+    @app.exception_handler(FutureTimeout)
+    def timeout(request: Request, e: FutureTimeout) -> JSONResponse:
+        return JSONResponse({"detail": "the simulator did not answer in time; try again"}, status_code=503)
+
+    @app.exception_handler(RequestValidationError)
+    def invalid(request: Request, e: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in e.errors():
+            where = ".".join(str(x) for x in err.get("loc", ()) if x not in ("body", "path", "query"))
+            parts.append(f"{where}: {err.get('msg')}" if where else str(err.get("msg")))
+        return JSONResponse({"detail": "; ".join(parts) or "invalid request", "errors": _plain(e.errors())},
+                            status_code=422)
+
+    def episode_or_404(episode_id: int) -> Episode:
+        episode = runner.episodes.get(episode_id)
+        if episode is None:
+            raise NotFound(f"no episode {episode_id} (episodes are kept in memory, the oldest dropped)")
+        return episode
+
+    @app.get("/api/health", response_model=Health, summary="Is the server up, and is a model loaded")
+    def health() -> Health:
+        live = runner.live
+        return Health(status="ok", model_loaded=runner.has_model, checkpoint_message=runner.checkpoint_message,
+                      live_episode=live.id if live else None, episodes=len(runner.episodes), viewer_url=viewer_url)
+
+    @app.get("/api/checkpoints", response_model=list[CheckpointModel], summary="Checkpoints the server can fly")
+    def checkpoints() -> list[CheckpointModel]:
+        return [CheckpointModel(**c.__dict__) for c in runner.checkpoint_list()]
+
+    @app.post("/api/episodes", response_model=EpisodeCreated, status_code=201,
+              summary="Queue an episode; it flies after those before it")
+    def create_episode(request: EpisodeRequest) -> EpisodeCreated:
+        e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint),
+                        COMMAND_TIMEOUT)
+        return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction, policy=e.policy)
+
+    @app.get("/api/episodes", response_model=list[EpisodeSummary], summary="Episodes kept in memory, oldest first")
+    def list_episodes() -> list[EpisodeSummary]:
+        return [summary(e) for e in runner.episodes.all()]
+
+    @app.get("/api/episodes/{episode_id}", response_model=EpisodeSummary, summary="Status, steps and result")
+    def get_episode(episode_id: int) -> EpisodeSummary:
+        return summary(episode_or_404(episode_id))
+
+    @app.get("/api/episodes/{episode_id}/steps", response_model=StepsResponse,
+             summary="Per-step poses and actions (all recorded steps; complete once finished)")
+    def get_steps(episode_id: int) -> StepsResponse:
+        e = episode_or_404(episode_id)
+        steps = [StepModel(step=s.step, time=s.time, x=s.position[0], y=s.position[1], z=s.position[2], yaw=s.yaw,
+                           v=s.v, omega=s.omega, stop=s.stop,
+                           model=ModelStep(v=s.maps.v, omega=s.maps.omega, stop_probability=s.maps.stop_probability)
+                           if s.maps else None) for s in list(e.steps)]
+        return StepsResponse(episode_id=e.id, status=e.status, steps=steps)
+
+    def step_of(e: Episode, step: int):
+        if not 0 <= step < len(e.steps):
+            raise RunnerError(f"step {step} is not recorded: episode {e.id} has {len(e.steps)} steps")
+        return e.steps[step]
+
+    @app.get("/api/episodes/{episode_id}/steps/{step}/camera.jpg", response_class=Response,
+             responses={200: {"content": {"image/jpeg": {}}}}, summary="The camera image at a step")
+    def get_camera(episode_id: int, step: int) -> Response:
+        return Response(step_of(episode_or_404(episode_id), step).camera_jpeg, media_type="image/jpeg")
+
+    @app.get("/api/episodes/{episode_id}/steps/{step}/maps/{layer}.png", response_class=Response,
+             responses={200: {"content": {"image/png": {}}}},
+             summary="A map layer at a step as PNG (semantic, relevance, goal, goal_robot), 4x nearest-neighbour")
+    def get_map(episode_id: int, step: int, layer: str) -> Response:
+        e = episode_or_404(episode_id)
+        if layer not in LAYERS:
+            raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS)}")
+        record = step_of(e, step)
+        model = runner.models.get(e.checkpoint) if e.checkpoint else None
+        if record.maps is None or model is None:
+            raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
+        m = record.maps
+        layers = build_layers(m.semantic_w, m.relevance_w, m.goal_w, m.goal_r, model.heads)
+        return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")
+
+    @app.post("/api/ground", response_model=GroundResponse,
+              summary="Ground another instruction on an episode's semantic map at a step, without flying")
+    def ground(request: GroundRequest) -> GroundResponse:
+        episode = episode_or_404(request.episode_id)
+        g: Grounding = runner.call(Ground(request.episode_id, request.instruction, request.step), COMMAND_TIMEOUT)
+        heads = runner.models[episode.checkpoint].heads
+        relevance = positive_probability(g.relevance_w, heads.grounding_w, heads.grounding_b)
+        goal = positive_probability(g.goal_w, heads.goal_w, heads.goal_b)
+        i = g.instruction
+        return GroundResponse(episode_id=g.episode_id, step=g.step, instruction=i.text, landmark=i.noun_phrase,
+                              side=i.side, goal_x=i.goal_x, goal_y=i.goal_y, v=g.v, omega=g.omega,
+                              stop_probability=g.stop_probability, seconds=g.seconds,
+                              relevance_probability=np.round(relevance, 4).tolist(),
+                              goal_probability=np.round(goal, 4).tolist())
+
+    return app
+
+
+def _plain(errors: list) -> list:
+    """Validation errors made JSON-safe (pydantic may put exceptions in 'ctx')."""
+    out = []
+    for err in errors:
+        err = dict(err)
+        if "ctx" in err:
+            err["ctx"] = {k: str(v) for k, v in err["ctx"].items()}
+        if not isinstance(err.get("input"), (str, int, float, bool, type(None))):
+            err.pop("input", None)
+        out.append(err)
+    return out

@@ -1,0 +1,158 @@
+"""Colours for the model's maps: colormaps with their range, the semantic map as "most likely landmark per
+cell" with a legend, crisp nearest-neighbour upscaling and PNG encoding.
+
+Pure numpy and Pillow, no torch and no viser, so it is cheap to test. Maps arrive north-up (row 0 is the
+north edge of the field, see docs/model.md) and stay that way: images are drawn as they are stored.
+"""
+
+from __future__ import annotations
+
+import base64
+import colorsys
+import html
+import io
+
+import numpy as np
+from PIL import Image
+
+# matplotlib's viridis at nine evenly spaced points; linear interpolation between them is within a few
+# levels of the full table and keeps the map perceptually ordered and readable for colour-blind people.
+_VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141), (39, 173, 129),
+                     (92, 200, 99), (170, 220, 50), (253, 231, 37)], dtype=np.float64)
+# A diverging map (blue - white - red) for signed values such as raw relevance channels.
+_DIVERGING = np.array([(33, 102, 172), (103, 169, 207), (209, 229, 240), (247, 247, 247), (253, 219, 199),
+                       (239, 138, 98), (178, 24, 43)], dtype=np.float64)
+COLORMAPS = {"viridis": _VIRIDIS, "diverging": _DIVERGING}
+
+UNSEEN_RGB = (58, 58, 64)  # semantic-map cells the camera has never covered
+
+
+def _lut(name: str) -> np.ndarray:
+    anchors = COLORMAPS[name]
+    x = np.linspace(0.0, 1.0, len(anchors))
+    t = np.linspace(0.0, 1.0, 256)
+    return np.stack([np.interp(t, x, anchors[:, k]) for k in range(3)], 1).round().astype(np.uint8)  # (256, 3)
+
+
+_LUTS = {name: _lut(name) for name in COLORMAPS}
+
+
+def apply_colormap(values: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis") -> np.ndarray:
+    """Scalar map (H, W) -> RGB uint8 (H, W, 3), values clipped to [vmin, vmax]; NaN shows as the low end."""
+    v = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=vmin)
+    span = vmax - vmin if vmax > vmin else 1.0
+    index = np.clip((v - vmin) / span * 255.0, 0, 255).astype(np.uint8)
+    return _LUTS[cmap][index]
+
+
+def css_gradient(cmap: str = "viridis") -> str:
+    stops = ", ".join(f"rgb({r},{g},{b})" for r, g, b in COLORMAPS[cmap].astype(int))
+    return f"linear-gradient(to right, {stops})"
+
+
+def colorbar_html(vmin: float, vmax: float, cmap: str = "viridis", label: str = "") -> str:
+    """A horizontal colour bar with its range, as a small HTML block."""
+    return (f'<div style="font-size:11px;line-height:1.2">'
+            f'<div style="height:8px;border-radius:2px;background:{css_gradient(cmap)}"></div>'
+            f'<div style="display:flex;justify-content:space-between"><span>{_fmt(vmin)}</span>'
+            f'<span style="opacity:.75">{html.escape(label)}</span><span>{_fmt(vmax)}</span></div></div>')
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.2g}" if abs(x) < 0.01 and x != 0 else f"{x:.2f}"
+
+
+def class_palette(n: int) -> np.ndarray:
+    """n distinct colours (n, 3) uint8: golden-ratio hues, alternating saturation and value so that
+    neighbours in the catalogue (often similar objects) differ in more than hue."""
+    out = np.empty((n, 3), np.uint8)
+    for i in range(n):
+        h = (0.07 + i * 0.618033988749895) % 1.0
+        s = (0.85, 0.55, 0.95)[i % 3]
+        v = (0.95, 0.80, 0.65)[(i // 3) % 3]
+        out[i] = np.array(colorsys.hsv_to_rgb(h, s, v)) * 255
+    return out
+
+
+def softmax(logits: np.ndarray, axis: int = 0) -> np.ndarray:
+    z = logits - logits.max(axis=axis, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The perception head on every cell: semantic map (C, H, W), head Linear(C -> K) as weight (K, C) and bias (K,)
+    -> (most likely class (H, W) int, its probability (H, W), observed (H, W) bool).
+
+    A cell the camera never covered holds exactly zero in every channel (the map starts at zero and only the
+    covered cells are blended), so those are marked unobserved rather than given a meaningless class."""
+    C, H, W = semantic_map.shape
+    features = semantic_map.reshape(C, H * W).astype(np.float32)
+    # einsum, not @: numpy's threaded BLAS spins for ~16 ms on this tiny product when the cores are busy
+    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), features) + bias.astype(np.float32)[:, None]
+    probs = softmax(logits, axis=0)  # (K, H*W)
+    best = probs.argmax(0)
+    observed = np.abs(features).max(0) > 1e-6
+    return best.reshape(H, W), probs.max(0).reshape(H, W), observed.reshape(H, W)
+
+
+def semantic_rgb(classes: np.ndarray, confidence: np.ndarray, observed: np.ndarray, palette: np.ndarray
+                 ) -> np.ndarray:
+    """Class per cell -> RGB (H, W, 3): the class colour, darker where the head is less sure (brightness from
+    0.45 at chance to 1 at certainty), unobserved cells grey."""
+    K = len(palette)
+    chance = 1.0 / K
+    shade = 0.45 + 0.55 * np.clip((confidence - chance) / (1.0 - chance), 0.0, 1.0)
+    rgb = palette[classes].astype(np.float32) * shade[..., None]
+    rgb[~observed] = UNSEEN_RGB
+    return rgb.round().astype(np.uint8)
+
+
+def semantic_legend_html(classes: np.ndarray, observed: np.ndarray, palette: np.ndarray, names: list[str],
+                         top: int = 8) -> str:
+    """The classes covering most observed cells, with their colour and share of the observed area."""
+    counts = np.bincount(classes[observed].ravel(), minlength=len(palette))
+    total = max(int(counts.sum()), 1)
+    order = [int(k) for k in np.argsort(-counts, kind="stable")[:top] if counts[k] > 0]
+    items = []
+    for k in order:
+        r, g, b = (int(c) for c in palette[k])
+        items.append(f'<span style="white-space:nowrap;margin-right:6px"><span style="display:inline-block;'
+                     f'width:9px;height:9px;border-radius:2px;background:rgb({r},{g},{b});margin-right:3px"></span>'
+                     f'{html.escape(names[k])} {100 * counts[k] / total:.0f}%</span>')
+    if not items:
+        return '<div style="font-size:11px;opacity:.75">nothing observed yet</div>'
+    unseen = ' <span style="opacity:.7">grey: not seen yet</span>' if (~observed).any() else ""
+    return f'<div style="font-size:11px;line-height:1.5">{"".join(items)}{unseen}</div>'
+
+
+def upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """Nearest-neighbour upscaling (H, W[, C]) -> (H f, W f[, C]): every cell stays a sharp square."""
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def with_alpha(rgb: np.ndarray, alpha: float | np.ndarray) -> np.ndarray:
+    """RGB (H, W, 3) + opacity in [0, 1] (scalar or (H, W)) -> RGBA uint8."""
+    a = np.broadcast_to(np.clip(np.asarray(alpha, dtype=np.float32), 0, 1) * 255, rgb.shape[:2])
+    return np.concatenate([rgb, a.round().astype(np.uint8)[..., None]], axis=-1)
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buffer, format="PNG", compress_level=1)
+    return buffer.getvalue()
+
+
+def jpeg_bytes(image: np.ndarray, quality: int = 85) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+def data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")

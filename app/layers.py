@@ -1,0 +1,179 @@
+"""The model's maps as layers a person can read (paper: Model Architecture; docs/model.md for the maps).
+
+- semantic: the perception head (semantic-map cell -> 63 landmark classes) on every cell, drawn as the most
+  likely landmark with a legend; grey where the camera has not looked yet.
+- relevance: P(the cell holds the landmark the instruction names), the grounding head Linear(3 -> 2) on the
+  relevance map; cells never observed are left transparent on the ground.
+- goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
+- goal_robot: the same on the robot-frame goal map the controller reads (drone at the centre, facing up).
+
+The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
+model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.colors import (
+    apply_colormap,
+    class_palette,
+    colorbar_html,
+    semantic_classes,
+    semantic_legend_html,
+    semantic_rgb,
+    softmax,
+)
+from gsmn.world.landmarks import CATALOGUE
+
+LAYERS = ("semantic", "relevance", "goal", "goal_robot")
+TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
+          "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
+VALUE_MODES = ("probability", "raw")
+RANGE_MODES = ("fixed", "frame")
+
+
+@dataclass(frozen=True)
+class MapHeads:
+    """The auxiliary heads of a GSMN as numpy arrays (weight (K, C), bias (K,)), and the class names."""
+
+    perception_w: np.ndarray
+    perception_b: np.ndarray
+    grounding_w: np.ndarray
+    grounding_b: np.ndarray
+    goal_w: np.ndarray
+    goal_b: np.ndarray
+    class_names: tuple[str, ...]
+
+    @classmethod
+    def of(cls, model) -> MapHeads:
+        heads = model.heads
+
+        def arr(t) -> np.ndarray:
+            return t.detach().cpu().float().numpy().copy()
+
+        return cls(arr(heads.perception.weight), arr(heads.perception.bias), arr(heads.grounding.weight),
+                   arr(heads.grounding.bias), arr(heads.goal.weight), arr(heads.goal.bias),
+                   tuple(m.noun_phrase for m in CATALOGUE))
+
+    @property
+    def palette(self) -> np.ndarray:
+        return _PALETTE[: len(self.class_names)]
+
+
+_PALETTE = class_palette(len(CATALOGUE))
+
+
+def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
+    C, H, W = maps.shape
+    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
+        + bias.astype(np.float32)[:, None]  # einsum: see semantic_classes
+    return softmax(logits, axis=0)[1].reshape(H, W)
+
+
+@dataclass(frozen=True)
+class Layer:
+    name: str
+    title: str
+    rgb: np.ndarray  # (H, W, 3) uint8, one pixel per cell, north-up (robot frame: facing up)
+    alpha: np.ndarray  # (H, W) float in [0, 1]: how opaque each cell is on the ground (low values show the field)
+    legend_html: str
+    values: np.ndarray | None = None  # (H, W) the scalar shown, for inspection
+
+
+def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: str, label: str) -> Layer:
+    if range_mode == "fixed" and label.startswith("P("):
+        vmin, vmax = 0.0, 1.0
+    else:
+        vmin, vmax = float(np.min(values)), float(np.max(values))
+        if vmax - vmin < 1e-6:
+            vmax = vmin + 1e-6
+    legend = colorbar_html(vmin, vmax, "viridis", label + (" (this frame's range)" if range_mode == "frame" else ""))
+    # On the ground a scalar map is a heat overlay: opacity grows with the value, so the field and the
+    # landmarks show through where the map is low.
+    heat = 0.12 + 0.88 * np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
+    return Layer(name, TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
+
+
+def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
+                 heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed") -> dict[str, Layer]:
+    """All four layers of one step (maps as stored: float16 or float32, channels first)."""
+    if value_mode not in VALUE_MODES:
+        raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
+    if range_mode not in RANGE_MODES:
+        raise ValueError(f"range_mode must be one of {RANGE_MODES}, got {range_mode!r}")
+    classes, confidence, observed = semantic_classes(semantic_w, heads.perception_w, heads.perception_b)
+    palette = heads.palette
+    semantic = Layer("semantic", TITLES["semantic"], semantic_rgb(classes, confidence, observed, palette),
+                     observed.astype(np.float32),
+                     semantic_legend_html(classes, observed, palette, list(heads.class_names)), confidence)
+    if value_mode == "probability":
+        relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
+        goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
+        goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
+        labels = ("P(named)", "P(goal)", "P(goal)")
+    else:
+        relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
+        labels = ("relevance channel 0", "goal channel 0", "goal channel 0")
+    ones = np.ones(goal.shape, np.float32)
+    out = {"semantic": semantic,
+           "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0]),
+           "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1]),
+           "goal_robot": _scalar_layer("goal_robot", goal_robot, np.ones(goal_robot.shape, np.float32), range_mode,
+                                       labels[2])}
+    mark_drone(out["goal_robot"].rgb)
+    return out
+
+
+def world_cell(x: float, y: float, field_size: float, cells: int) -> tuple[int, int]:
+    """The (row, col) of the north-up world-map cell holding the point (x, y) (docs/model.md conventions)."""
+    size = field_size / cells
+    return int(np.floor((field_size - y) / size)), int(np.floor(x / size))
+
+
+def mark_drone(rgb: np.ndarray) -> None:
+    """Draw the drone at the centre of a robot-frame map (the corner of the four middle cells), in place: a white
+    2x2 block with a black cell ahead of it, so the heading (up) reads at a glance."""
+    h, w = rgb.shape[:2]
+    r, c = h // 2, w // 2
+    rgb[r - 1:r + 1, c - 1:c + 1] = 255
+    rgb[r - 3:r - 1, c - 1:c + 1] = (255, 255, 255)
+    rgb[r - 4, c - 1:c + 1] = 0
+
+
+@dataclass(frozen=True)
+class CellReport:
+    """What the model holds at one world-map cell, beside the ground truth there."""
+
+    row: int
+    col: int
+    x: float  # the cell's centre (m)
+    y: float
+    observed: bool
+    classes: tuple[tuple[str, float], ...]  # the perception head's three most likely landmarks
+    p_named: float
+    p_goal: float
+    truth: str | None  # the landmark whose radius covers the cell centre, if any
+
+
+def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray,
+                 heads: MapHeads, world) -> CellReport | None:
+    """The cell under the world point (x, y); None outside the map."""
+    C, n, _ = semantic_w.shape
+    size = world.field_size / n
+    r, c = world_cell(x, y, world.field_size, n)
+    if not (0 <= r < n and 0 <= c < n):
+        return None
+    feature = semantic_w[:, r, c].astype(np.float32)
+    probs = softmax(np.einsum("kc,c->k", heads.perception_w, feature) + heads.perception_b)
+    top = np.argsort(-probs)[:3]
+    cx, cy = (c + 0.5) * size, world.field_size - (r + 0.5) * size
+    truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
+    p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0]
+    p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0]
+    return CellReport(r, c, cx, cy, bool(np.abs(feature).max() > 1e-6),
+                      tuple((heads.class_names[k], float(probs[k])) for k in top), float(p_named), float(p_goal),
+                      truth)

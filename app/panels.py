@@ -1,0 +1,157 @@
+"""What the page says and draws beside the 3D scene, as pure functions of an episode and a step: the status and
+result text, the step readout, the counterfactual note, the timeline marks, the cell inspector, and the map
+panels (HTML with nearest-neighbour PNGs, so every cell stays a sharp square)."""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from app.colors import data_uri, png_bytes, upscale
+from app.commands import Grounding
+from app.layers import CellReport, Layer
+from app.recording import FINISHED, Episode, StepRecord
+
+PANEL_UPSCALE = 4  # panel maps are upscaled with nearest neighbour and drawn with CSS pixelated scaling
+
+
+def error_html(text: str) -> str:
+    return f"<span style='color:#c0392b'>{text}</span>"
+
+
+def placeholder_html(text: str) -> str:
+    return (f'<div class="gsmn-maps" data-episode="" data-step="" style="padding:12px;font-size:13px;opacity:.7">'
+            f"{html.escape(text)}</div>")
+
+
+def other_side(text: str, side: str) -> str:
+    other = {"left": "right", "right": "left", "front": "back", "back": "front"}[side]
+    return text.replace(f"{side} side", f"{other} side", 1)
+
+
+def status_line(episode: Episode) -> str:
+    flying = "the model" if episode.policy == "model" else "the expert" + (
+        " (the model watching)" if episode.checkpoint else "")
+    state = {"queued": "queued", "running": "flying", "paused": "paused", "finished": "finished",
+             "cancelled": "stopped early", "failed": "failed"}[episode.status]
+    text = (f"**Episode {episode.id}** ({state}): {flying} in environment {episode.env_id}, "
+            f"\"{html.escape(episode.instruction)}\".")
+    if episode.error:
+        text += f" Error: {html.escape(episode.error)}"
+    return text
+
+
+def result_markdown(episode: Episode) -> str:
+    """The outcome, plainly: success, distances, steps, how it ended, the final STOP probability."""
+    r = episode.result
+    if episode.status != FINISHED or r is None:
+        return f"### Stopped early\nEpisode {episode.id} {episode.status} after {len(episode.steps)} steps." \
+            + (f" {html.escape(episode.error)}" if episode.error else "")
+    instruction = episode.task.instruction
+    verdict = "Success" if r.success else "Failure"
+    colour = "#1e8449" if r.success else "#c0392b"
+    how = "said STOP" if r.stopped else f"ran out of steps (horizon {episode.horizon})"
+    region = "inside" if r.landmark_success else "outside"
+    stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
+    return (f"### <span style='color:{colour}'>{verdict}</span>\n"
+            f"| | |\n|---|---|\n"
+            f"| ended | {how} after **{r.steps}** steps |\n"
+            f"| distance to goal | **{r.goal_distance:.1f} m** |\n"
+            f"| distance to the {html.escape(instruction.noun_phrase)} | {r.landmark_distance:.1f} m ({region} the "
+            f"6 m region) |\n"
+            f"| quadrant | stopped **{r.final_side}**, asked **{instruction.side}** |\n"
+            f"| P(stop) at the end | {stop} |\n")
+
+
+def readout_markdown(episode: Episode, t: int, counterfactual, whatif_text: str | None) -> str:
+    record = episode.steps[t]
+    head = (f"**Step {t}** of {len(episode.steps) - 1}{' (live)' if episode.live else ''} · "
+            f"{record.time:.1f} s · flown: v {record.v:.2f} m/s, ω {record.omega:+.2f} rad/s"
+            f"{' · **STOP**' if record.stop else ''}")
+    m = record.maps
+    if m is not None:
+        head += f"  \nmodel: v {m.v:.2f} m/s, ω {m.omega:+.2f} rad/s, **P(stop) {m.stop_probability:.2f}**"
+    if whatif_text and counterfactual is None:
+        head += "  \nwhat-if: grounding..."
+    return head
+
+
+def whatif_markdown(g: Grounding, record: StepRecord) -> str:
+    own = record.maps
+    compare = (f" (the episode's own instruction: v {own.v:.2f}, ω {own.omega:+.2f}, P(stop) "
+               f"{own.stop_probability:.2f})") if own else ""
+    return (f"**What if \"{html.escape(g.instruction.text)}\"** at step {g.step}: the model would fly v **{g.v:.2f}** "
+            f"m/s, ω **{g.omega:+.2f}** rad/s, P(stop) **{g.stop_probability:.2f}**{compare}. Grounded in "
+            f"{1000 * g.seconds:.1f} ms on the map already built; gold marks its goal and quadrant.")
+
+
+def timeline_marks(episode: Episode) -> tuple[tuple[int, str], ...]:
+    """Marks on the timeline: the ends, and the first step where the model's P(stop) passed 0.5."""
+    last = max(len(episode.steps) - 1, 1)
+    marks = [(0, "0")]
+    stop = next((s.step for s in list(episode.steps) if s.maps is not None and s.maps.stop_probability > 0.5), None)
+    if stop is not None and 0 < stop < last:
+        marks.append((stop, "P(stop)>0.5"))
+    marks.append((last, str(last)))
+    return tuple(marks)
+
+
+def inspector_markdown(report: CellReport | None, step: int) -> str:
+    if report is None:
+        return "That point is outside the map."
+    classes = ", ".join(f"{html.escape(name)} {p:.2f}" for name, p in report.classes)
+    seen = "" if report.observed else " (not seen yet)"
+    truth = f"**{html.escape(report.truth)}**" if report.truth else "open ground"
+    return (f"**Cell ({report.row}, {report.col})** at x {report.x:.1f} m, y {report.y:.1f} m, step {step}{seen}: "
+            f"perception {classes}; P(named) **{report.p_named:.2f}**, P(goal) **{report.p_goal:.2f}**; "
+            f"truly there: {truth}.")
+
+
+def mark_cells(image: np.ndarray, cells: list[tuple[int, int, tuple[int, int, int]]], factor: int) -> np.ndarray:
+    """Outline cells (row, col, colour) of an upscaled map in place, one pixel wide."""
+    h, w = image.shape[:2]
+    for r, c, colour in cells:
+        if 0 <= r < h // factor and 0 <= c < w // factor:
+            r0, c0 = r * factor, c * factor
+            image[r0, c0:c0 + factor] = colour
+            image[r0 + factor - 1, c0:c0 + factor] = colour
+            image[r0:r0 + factor, c0] = colour
+            image[r0:r0 + factor, c0 + factor - 1] = colour
+    return image
+
+
+def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
+              cell_of) -> str:
+    """The map panels of one step: semantic, relevance and goal (north-up) and the robot-frame goal map, each
+    with its legend. The drone's cell is outlined in white and the goal's in red on the world maps."""
+    attrs = (f'class="gsmn-maps" data-episode="{episode.id}" data-step="{t}" '
+             f'data-counterfactual="{int(bool(whatif_text))}"')
+    if layers is None:
+        return (f'<div {attrs} style="padding:12px;font-size:13px;opacity:.7">No model maps for this episode: '
+                f"the expert flew without a checkpoint loaded.</div>")
+    record = episode.steps[t]
+    instruction = episode.task.instruction
+    marks = [(*cell_of(record.position[0], record.position[1]), (255, 255, 255)),
+             (*cell_of(instruction.goal_x, instruction.goal_y), (230, 30, 30))]
+    cells = []
+    for name in ("semantic", "relevance", "goal", "goal_robot"):
+        layer = layers[name]
+        image = upscale(layer.rgb, PANEL_UPSCALE)
+        if name != "goal_robot":
+            mark_cells(image, marks, PANEL_UPSCALE)
+        title = layer.title
+        if whatif_text and name in ("relevance", "goal", "goal_robot"):
+            title += " · what-if"
+        orient = "north up" if name != "goal_robot" else "ahead up"
+        cells.append(f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">{html.escape(title)}</div>'
+                     f'<img data-layer="{name}" src="{data_uri(png_bytes(image))}" style="width:100%;'
+                     f'image-rendering:pixelated;border-radius:3px;display:block" title="{orient}"/>'
+                     f'{layer.legend_html}</div>')
+    caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
+               f"cells; white: the drone's cell, red: the goal.</div>")
+    if whatif_text:
+        caption += (f"<div style='font-size:11px;color:#9a6b00'>Relevance and goal grounded for what-if "
+                    f"\"{html.escape(whatif_text)}\".</div>")
+    grid = "display:grid;grid-template-columns:repeat(2,minmax(0,1fr));gap:8px"
+    return f'<div {attrs} style="padding-right:10px"><div style="{grid}">{"".join(cells)}</div>{caption}</div>'

@@ -1,0 +1,149 @@
+"""Episodes as the dashboard keeps them: every step's pose, action, camera image (JPEG) and the model's maps
+(float16), in memory, so the timeline can scrub a finished episode and the API can serve per-step data and
+counterfactual grounding at any step. Episodes are kept up to a limit; the oldest finished ones are dropped.
+
+Written only by the runner thread; read by the viewer and the API. A step list only grows, so readers can
+index it without a lock; the store's dictionary is guarded by a lock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gsmn.task.metrics import side_of
+from gsmn.task.rollout import EpisodeRecord, Task
+
+QUEUED, RUNNING, PAUSED, FINISHED, CANCELLED, FAILED = "queued", "running", "paused", "finished", "cancelled", "failed"
+LIVE = (QUEUED, RUNNING, PAUSED)
+
+
+@dataclass(frozen=True)
+class StepMaps:
+    """What the model computed at one step, as small float16 arrays (north-up world maps, docs/model.md)."""
+
+    semantic_w: np.ndarray  # (C_f, n, n) the semantic map after this step's image
+    coverage_w: np.ndarray  # (n, n) this step's camera coverage
+    relevance_w: np.ndarray  # (3, n, n)
+    goal_w: np.ndarray  # (2, n, n)
+    goal_r: np.ndarray  # (2, 2n, 2n) the goal map the controller reads (drone at the centre, facing up)
+    pose: np.ndarray  # (3,) x, y, yaw the model used (float32)
+    v: float  # the model's own action (m/s, rad/s) and STOP probability at this step
+    omega: float
+    stop_probability: float
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    step: int
+    time: float  # simulated seconds
+    position: tuple[float, float, float]
+    yaw: float
+    T_world_camera: np.ndarray  # (4, 4) float32, camera x right, y down, z forward
+    camera_jpeg: bytes
+    v: float  # the action flown (m/s, rad/s) and whether it was STOP
+    omega: float
+    stop: bool
+    maps: StepMaps | None  # None when no model watched this episode
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    success: bool
+    landmark_success: bool
+    goal_distance: float  # m, final position to the demonstration's goal
+    landmark_distance: float  # m, final position to the named landmark's centre
+    final_side: str  # quadrant of the final position around the named landmark
+    steps: int
+    stopped: bool  # the policy said STOP (else the horizon ended the episode)
+    final_x: float
+    final_y: float
+    stop_probability: float | None  # the model's P(STOP) at the last step
+
+    @classmethod
+    def of(cls, record: EpisodeRecord, stop_probability: float | None) -> EpisodeResult:
+        final = (record.final_x, record.final_y)
+        landmark = (record.landmark_x, record.landmark_y)
+        return cls(success=record.success, landmark_success=record.landmark_success,
+                   goal_distance=record.goal_distance, landmark_distance=float(np.hypot(
+                       record.final_x - record.landmark_x, record.final_y - record.landmark_y)),
+                   final_side=side_of(landmark, (record.start_x, record.start_y), final), steps=record.steps,
+                   stopped=record.stopped, final_x=record.final_x, final_y=record.final_y,
+                   stop_probability=stop_probability)
+
+
+@dataclass
+class Episode:
+    id: int
+    task: Task
+    policy: str  # "model" or "expert"
+    system: str  # what flies: the checkpoint's kind or "oracle"
+    checkpoint: str | None  # the model whose maps are recorded (None: no maps)
+    horizon: int
+    start_paused: bool = False  # stop after the first step (single-stepping from the start)
+    status: str = QUEUED
+    steps: list[StepRecord] = field(default_factory=list)
+    result: EpisodeResult | None = None
+    error: str | None = None
+    created: float = field(default_factory=time.time)
+    started: float | None = None  # time.perf_counter() when the runner began flying it
+    first_frame: float | None = None  # time.perf_counter() when its first step was recorded
+    finished: float | None = None
+
+    @property
+    def env_id(self) -> int:
+        return self.task.world.env_id
+
+    @property
+    def instruction(self) -> str:
+        return self.task.instruction.text
+
+    @property
+    def live(self) -> bool:
+        return self.status in LIVE
+
+    def steps_per_second(self) -> float | None:
+        if self.first_frame is None or len(self.steps) < 2:
+            return None
+        end = self.finished or time.perf_counter()
+        return (len(self.steps) - 1) / max(end - self.first_frame, 1e-9)
+
+
+class EpisodeStore:
+    """Episodes by id, oldest first; at most `limit` are kept, and only finished ones are dropped."""
+
+    def __init__(self, limit: int = 16):
+        if limit < 1:
+            raise ValueError(f"the episode limit must be at least 1, got {limit}")
+        self.limit = limit
+        self._episodes: OrderedDict[int, Episode] = OrderedDict()
+        self._lock = threading.Lock()
+        self._next_id = 1
+
+    def new_id(self) -> int:
+        with self._lock:
+            self._next_id += 1
+            return self._next_id - 1
+
+    def add(self, episode: Episode) -> None:
+        with self._lock:
+            self._episodes[episode.id] = episode
+            done = [k for k, e in self._episodes.items() if not e.live]
+            while len(self._episodes) > self.limit and done:
+                del self._episodes[done.pop(0)]
+
+    def get(self, episode_id: int) -> Episode | None:
+        with self._lock:
+            return self._episodes.get(episode_id)
+
+    def all(self) -> list[Episode]:
+        with self._lock:
+            return list(self._episodes.values())
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._episodes)

@@ -1,0 +1,123 @@
+"""`gsmn serve`: one process with the runner, the viser page and the FastAPI API (uvicorn on a thread).
+
+Both servers bind to loopback by default: neither has authentication. viser moves to the next free port
+silently when its port is taken, so the URLs are read back from the bound sockets; the API does the same
+(and says so). Port 0 picks any free port (the tests use it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import socket
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+import viser
+
+from app.api import make_api
+from app.commands import ShowEnv
+from app.runner import Runner
+from app.viewer import Viewer
+from gsmn.config import RunConfig
+
+DEFAULT_CHECKPOINT = "gsmn"  # checkpoints/gsmn
+CHECKPOINTS_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
+
+
+def _url(host: str, port: int) -> str:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
+    return f"http://[{shown}]:{port}" if ":" in shown else f"http://{shown}:{port}"
+
+
+def bind_socket(host: str, port: int, tries: int = 20) -> tuple[socket.socket, bool]:
+    """A listening TCP socket on `port`, or on the next free one (like viser). Returns (socket, moved)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    last: OSError | None = None
+    for attempt in range(tries if port else 1):
+        # proto IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say they are TCP, and without
+        # it every kept-alive response waits about 40 ms for a delayed ACK (Nagle)
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port + attempt if port else 0))
+        except OSError as e:
+            sock.close()
+            last = e
+            continue
+        sock.listen(128)
+        sock.set_inheritable(True)
+        return sock, attempt > 0
+    raise OSError(f"no free port for the API from {port} to {port + tries - 1} on {host}: {last}")
+
+
+class ApiServer:
+    """uvicorn serving a FastAPI app on a daemon thread, on a socket bound beforehand."""
+
+    def __init__(self, app, host: str, port: int):
+        self.socket, self.moved = bind_socket(host, port)
+        self.host, self.port = host, self.socket.getsockname()[1]
+        config = uvicorn.Config(app, log_level="warning", access_log=False, timeout_graceful_shutdown=2)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.socket]}, name="gsmn-api",
+                                       daemon=True)
+        self.thread.start()
+
+    def wait_started(self, timeout: float = 30.0) -> None:
+        import time
+
+        deadline = time.monotonic() + timeout
+        while not self.server.started and self.thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if not self.server.started:
+            raise RuntimeError("the API server did not start")
+
+    @property
+    def url(self) -> str:
+        return _url(self.host, self.port)
+
+    def close(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=5)
+        self.socket.close()
+
+
+@dataclass
+class Urls:
+    page: str
+    api: str
+    api_moved: bool
+
+
+class Dashboard:
+    """The whole dashboard in this process. `checkpoint` None means the default (checkpoints/gsmn, optional);
+    a path given explicitly must load."""
+
+    def __init__(self, config: RunConfig, checkpoint: str | Path | None = None, host: str = "127.0.0.1",
+                 port: int = 8080, api_port: int = 8000, env_id: int = 70,
+                 checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1):
+        import torch
+
+        # One thread: the runner does one small step at a time, and on a busy machine two threads spin
+        # against each other (measured: an inference step went from 8 ms to 200-500 ms under load).
+        torch.set_num_threads(torch_threads)
+        self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
+                             require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
+                             max_episodes=max_episodes).start()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when not verbose
+            self.viser = viser.ViserServer(host=host, port=port, verbose=False, label="GSMN dashboard")
+        self.viewer = Viewer(self.viser, self.runner, env_id)
+        page_url = _url(host, self.viser.get_port())
+        self.api = ApiServer(make_api(self.runner, page_url), host, api_port)
+        self.api.wait_started()
+        self.urls = Urls(page_url, self.api.url, self.api.moved)
+        self.runner.call(ShowEnv(env_id))
+
+    def close(self) -> None:
+        self.api.close()
+        self.viewer.close()
+        self.runner.close()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.viser.stop()

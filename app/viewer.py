@@ -1,0 +1,664 @@
+"""The browser page (viser): controls on the left, the 3D scene in the middle, camera and maps on the right.
+
+Every action goes to the runner as a command (`app.runner`), the same commands the HTTP API posts. What the
+runner reports (a world shown, an episode started, a step recorded, an episode ended) goes into this viewer's
+event queue; one UI thread turns events into scene and GUI updates, drawing only the newest step when the
+simulator is ahead of the page, so a slow browser never slows the simulator. The timeline shows any recorded
+step of the displayed episode, live or finished, with every view (scene, camera, maps, readouts) in sync.
+
+The scene and the controls are shared by every open tab (viser's server-level API).
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import queue
+import threading
+import time
+import traceback
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+import viser.uplot
+from viser._messages import GuiSliderMark
+
+from app.colors import decode_image, upscale
+from app.commands import (
+    Cancel,
+    Ground,
+    Grounding,
+    Pause,
+    Resume,
+    RunnerError,
+    RunnerListener,
+    SetSpeed,
+    ShowEnv,
+    StartEpisode,
+    StepOnce,
+    WorldShown,
+)
+from app.layers import RANGE_MODES, VALUE_MODES, build_layers, inspect_cell, world_cell
+from app.panels import (
+    error_html,
+    inspector_markdown,
+    maps_html,
+    other_side,
+    placeholder_html,
+    readout_markdown,
+    result_markdown,
+    status_line,
+    timeline_marks,
+    whatif_markdown,
+)
+from app.recording import Episode, StepRecord
+from app.runner import Runner
+from app.scene import SceneView
+from gsmn.task.instructions import InstructionError, parse_instruction
+from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
+
+log = logging.getLogger("gsmn.dashboard")
+
+EXPERT_CHOICE = "Expert (oracle)"
+SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 steps/s)": 10.0,
+          "slow (2 steps/s)": 2.0}
+REPLAY_STEPS_PER_SECOND = 10.0
+FOLLOW_LABEL = "Follow the live step"
+GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before drawing without it
+
+
+@dataclass
+class _View:
+    """What the page shows (owned by the UI thread)."""
+
+    episode: Episode | None = None
+    cursor: int = 0
+    follow: bool = True
+    replaying: bool = False
+    counterfactual: str | None = None  # the what-if instruction while that mode is on
+    inspected: tuple[float, float] | None = None  # a ground point clicked to inspect its map cell
+    plot_steps: int = -1  # steps in the plot, to redraw it only when it grows
+
+
+class Viewer(RunnerListener):
+    def __init__(self, server: viser.ViserServer, runner: Runner, env_id: int = 70):
+        self.server = server
+        self.runner = runner
+        cam = runner.config.camera
+        from gsmn.world.assets import load_catalogue
+
+        self.scene = SceneView(server, load_catalogue(), runner.config.task.success_radius, cam.vfov_deg,
+                               cam.width / cam.height)
+        self.view = _View()
+        self.world_shown: WorldShown | None = None
+        self._events: queue.Queue = queue.Queue()
+        self._grounded: dict[tuple[int, int, str], Grounding | str] = {}
+        self._grounding: set[tuple[int, int, str]] = set()
+        self._closing = False
+        self._last_replay = 0.0
+        self.rng = np.random.default_rng()
+        self._marks: tuple = ()
+        self._clicked_at: float | None = None
+        self.click_to_frame: list[float] = []  # s from a Run click to its first frame sent, for the benchmark
+        self._whatif_at: float | None = None
+        self.whatif_to_frame: list[float] = []  # s from a Ground click to the what-if maps sent
+        self.frames_drawn = 0  # steps drawn, and the time it took (for the benchmark)
+        self.render_seconds = 0.0
+        field, cells = runner.config.world.field_size, runner.config.model.map_size
+        self._cell_of = lambda x, y: world_cell(x, y, field, cells)
+        server.scene.set_up_direction("+z")
+        camera = server.initial_camera  # over the field from beyond its south-west corner
+        camera.position, camera.look_at, camera.up = (0.0, -13.0, 23.0), (15.0, 13.5, 0.0), (0.0, 0.0, 1.0)
+        self._build_controls(env_id)
+        self._build_views()
+        runner.listeners.append(self)
+        self.thread = threading.Thread(target=self._loop, name="gsmn-viewer", daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self._closing = True
+        self._events.put(("close",))
+        self.thread.join(timeout=5)
+
+    # -- runner events (runner thread: only enqueue) ------------------------------------------------------------
+    def on_world(self, shown: WorldShown) -> None:
+        self._events.put(("world", shown))
+
+    def on_episode_start(self, episode: Episode) -> None:
+        self._events.put(("start", episode))
+
+    def on_step(self, episode: Episode, record: StepRecord) -> None:
+        self._events.put(("step", episode))
+
+    def on_episode_end(self, episode: Episode) -> None:
+        self._events.put(("end", episode))
+
+    def on_state(self, episode: Episode | None, paused: bool) -> None:
+        self._events.put(("state", episode))
+
+    # -- the GUI ----------------------------------------------------------------------------------------------
+    def _build_controls(self, env_id: int) -> None:
+        gui = self.server.gui
+        gui.configure_theme(dark_mode=False, show_logo=False, brand_color=(40, 110, 245))
+        gui.main_panel.dock_left()
+        gui.main_panel.set_width(330)
+        gui.add_markdown("## GSMN dashboard\nFollow an instruction with the Grounded Semantic Mapping Network "
+                         "(Blukis et al., RSS 2018) and watch what it maps, grounds and plans.")
+        self.checkpoint_note = gui.add_markdown(self._checkpoint_text())
+
+        with gui.add_folder("Episode"):
+            self.env_number = gui.add_number("Environment id", env_id, min=0, step=1,
+                                             hint="id % 100: 0-69 train, 70-84 test, 85-99 dev")
+            self.split = gui.add_dropdown("Split", SPLITS, initial_value=split_of(env_id))
+            self.env_buttons = gui.add_button_group("World", ("Show", "Random in split"))
+            choices = self._policy_choices()
+            self.policy = gui.add_dropdown("Policy", choices, initial_value=choices[0],
+                                           hint="the expert flies with the model watching, when there is one")
+            self.instruction = gui.add_text("Instruction", "", hint="e.g. go to the left side of the barrel")
+            self.instruction_note = gui.add_markdown("")
+            self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
+                                              hint="fly this instruction in this world from the start")
+            self.status = gui.add_markdown("")
+        with gui.add_folder("Playback"):
+            self.playback = gui.add_button_group("Control", ("Play", "Pause", "Step", "Stop"))
+            self.timeline = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0)
+            self.follow = gui.add_checkbox(FOLLOW_LABEL, True)
+            self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0])
+        self.result = gui.add_markdown("")
+        with gui.add_folder("Counterfactual: another instruction, same map"):
+            self.whatif = gui.add_text("What if", "", hint="grounded on the semantic map at the shown step")
+            self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
+            self.whatif_note = gui.add_markdown("Type another instruction: its relevance and goal maps and the action "
+                                                "it would give appear at once, on the map already built.")
+        with gui.add_folder("Layers on the ground", expand_by_default=True):
+            self.layer_boxes = {name: gui.add_checkbox(label, default) for name, label, default in (
+                ("semantic", "Semantic map", False), ("relevance", "Relevance map", False), ("goal", "Goal map", True))}
+            self.opacity = gui.add_slider("Opacity", min=0.0, max=1.0, step=0.05, initial_value=0.8)
+            self.value_mode = gui.add_dropdown("Map values", VALUE_MODES, initial_value="probability",
+                                               hint="probability: the model's auxiliary heads; raw: channel 0")
+            self.range_mode = gui.add_dropdown("Colour range", RANGE_MODES, initial_value="fixed",
+                                               hint="fixed: 0 to 1 for probabilities; frame: each frame's min to max")
+            self.show_task = gui.add_checkbox("Goal, success region, paths", True)
+
+        self.env_buttons.on_click(self._on_env_button)
+        self.run_button.on_click(lambda _: self._run(paused=False))
+        self.instruction.on_update(self._on_instruction_typed)
+        self.playback.on_click(self._on_playback)
+        self.timeline.on_update(self._on_timeline)
+        self.follow.on_update(self._on_follow)
+        self.speed.on_update(self._on_speed)
+        self.whatif_buttons.on_click(self._on_whatif)
+        for box in self.layer_boxes.values():
+            box.on_update(lambda _: self._events.put(("options",)))
+        for control in (self.opacity, self.value_mode, self.range_mode):
+            control.on_update(lambda _: self._events.put(("options",)))
+        self.show_task.on_update(lambda _: self._events.put(("task_visible",)))
+
+    def _build_views(self) -> None:
+        gui = self.server.gui
+        panel = gui.add_panel()
+        with panel.add_tab("Camera and maps", viser.Icon.MAP):
+            self.camera = gui.add_image(np.zeros((144, 256, 3), np.uint8), label="Camera", format="jpeg",
+                                        jpeg_quality=90)
+            self.readout = gui.add_markdown("")
+            self.maps = gui.add_html(placeholder_html("Run an episode to see the model's maps."))
+            self.inspector = gui.add_markdown("Click the field in the 3D view to inspect a map cell.")
+        with panel.add_tab("Actions", viser.Icon.CHART_LINE):
+            self.plot = gui.add_uplot(
+                data=(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)),
+                series=({"label": "step"}, {"label": "v (m/s)", "stroke": "#2870f5", "width": 2},
+                        {"label": "omega (rad/s)", "stroke": "#e08020", "width": 2},
+                        {"label": "P(stop)", "stroke": "#d03030", "width": 2, "dash": [4, 3]}),
+                title="Actions flown and the model's STOP probability", aspect=1.4,
+                scales={"x": {"time": False}}, axes=({"label": "step"}, {}))
+            gui.add_markdown("The model's own v and omega are in the readout under the camera when the expert flies.")
+        panel.dock_right()
+        panel.set_width(440)
+        self.panel = panel
+
+    def _checkpoint_text(self) -> str:
+        if self.runner.has_model:
+            return f"**Model:** {html.escape(self.runner.checkpoint_message)}"
+        return f"**No model loaded.** {html.escape(self.runner.checkpoint_message)}"
+
+    def _policy_choices(self) -> tuple[str, ...]:
+        choices = []
+        for info in self.runner.checkpoint_list():
+            if info.kind in ("gsmn", "gsmn-no-plan") and (info.loaded or info.error is None):
+                label = f"Model: {info.name}"
+                if info.default:
+                    choices.insert(0, label)
+                else:
+                    choices.append(label)
+        return (*choices, EXPERT_CHOICE)
+
+    def _policy_of_choice(self) -> tuple[str, str | None]:
+        choice = self.policy.value
+        if choice == EXPERT_CHOICE:
+            return "expert", None
+        name = choice.removeprefix("Model: ")
+        return "model", name
+
+    # -- callbacks (viser's thread pool: post commands, enqueue events) -----------------------------------------
+    def _on_env_button(self, event: viser.GuiEvent) -> None:
+        if event.target.value == "Random in split":
+            self.env_number.value = split_env_ids(self.split.value, 1, start=int(self.rng.integers(0, 100000)))[0]
+        env_id = int(self.env_number.value)
+        self._post(ShowEnv(env_id), "show")
+
+    def _run(self, paused: bool) -> None:
+        self._clicked_at = time.perf_counter()
+        policy, checkpoint = self._policy_of_choice()
+        text = self.instruction.value.strip() or None
+        self.status.content = "Starting..."
+        self._post(StartEpisode(int(self.env_number.value), text, policy, checkpoint, preempt=True, paused=paused),
+                   "started")
+
+    def _post(self, command, kind: str) -> Future:
+        future = self.runner.post(command)
+        future.add_done_callback(lambda f: self._events.put((kind, f)))
+        return future
+
+    def _on_instruction_typed(self, event: viser.GuiEvent) -> None:
+        if event.client is None:
+            return
+        self.instruction_note.content = self._instruction_feedback(self.instruction.value)
+
+    def _instruction_feedback(self, text: str) -> str:
+        if not text.strip():
+            return "Empty: the environment's own instruction will be flown."
+        try:
+            env_id = int(self.env_number.value)
+            world = self.world_shown.world if self.world_shown and self.world_shown.world.env_id == env_id \
+                else world_for_env(env_id, self.runner.config.world)
+            instruction = parse_instruction(text, world)
+        except (InstructionError, ValueError) as e:
+            return error_html(f"**Cannot fly this:** {html.escape(str(e))}")
+        note = " (ambiguous: several landmarks share this name; the first is meant)" if instruction.ambiguous else ""
+        return f"Understood: the **{instruction.side}** side of the **{instruction.noun_phrase}**{note}."
+
+    def _on_playback(self, event: viser.GuiEvent) -> None:
+        self._events.put(("playback", event.target.value))
+
+    def _on_speed(self, event: viser.GuiEvent) -> None:
+        if event.client is not None:
+            self.runner.post(SetSpeed(SPEEDS[self.speed.value]))
+
+    def _on_timeline(self, event: viser.GuiEvent) -> None:
+        if event.client is not None:  # a person moved it (our own updates come with client None)
+            self._events.put(("cursor", int(self.timeline.value)))
+
+    def _on_follow(self, event: viser.GuiEvent) -> None:
+        if event.client is not None:
+            self._events.put(("follow", bool(self.follow.value)))
+
+    def _on_ground_click(self, x: float, y: float) -> None:
+        self._events.put(("inspect", x, y))
+
+    def _on_whatif(self, event: viser.GuiEvent) -> None:
+        if event.target.value == "Clear":
+            self._events.put(("whatif", None))
+        else:
+            self._whatif_at = time.perf_counter()
+            self._events.put(("whatif", self.whatif.value.strip()))
+
+    # -- the UI thread ----------------------------------------------------------------------------------------
+    def _loop(self) -> None:
+        while not self._closing:
+            timeout = 1.0 / REPLAY_STEPS_PER_SECOND if self.view.replaying else 1.0
+            events = []
+            try:
+                events.append(self._events.get(timeout=timeout))
+                while True:
+                    events.append(self._events.get_nowait())
+            except queue.Empty:
+                pass
+            try:
+                dirty = False
+                for event in events:
+                    if event[0] == "close":
+                        return
+                    dirty |= self._apply(event)
+                dirty |= self._replay_tick()
+                if dirty:
+                    self._render()
+            except Exception:  # noqa: BLE001 - keep the page alive; the log says what broke
+                log.error("viewer update failed:\n%s", traceback.format_exc())
+
+    def _apply(self, event: tuple) -> bool:
+        """Apply one event to the view; True when the shown step must be redrawn."""
+        kind, v = event[0], self.view
+        if kind == "world":
+            self._show_world(event[1])
+            return False
+        if kind == "start":
+            self._start(event[1])
+            return False
+        if kind == "step":
+            episode = event[1]
+            if episode is v.episode:
+                if v.follow:
+                    v.cursor = len(episode.steps) - 1
+                return v.follow or len(episode.steps) <= 2  # the timeline grows either way
+            return False
+        if kind == "end":
+            episode = event[1]
+            if episode is v.episode:
+                v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
+                self.result.content = result_markdown(episode)
+                self.status.content = status_line(episode)
+                return True
+            return False
+        if kind == "state":
+            if event[1] is v.episode and v.episode is not None:
+                self.status.content = status_line(v.episode)
+            return False
+        if kind == "cursor":
+            if v.episode is not None and v.episode.steps:
+                v.cursor = max(0, min(event[1], len(v.episode.steps) - 1))
+                v.follow = v.cursor == len(v.episode.steps) - 1 and v.episode.live
+                v.replaying = False
+                self.follow.value = v.follow
+            return True
+        if kind == "follow":
+            v.follow = event[1]
+            if v.follow and v.episode is not None and v.episode.steps:
+                v.cursor = len(v.episode.steps) - 1
+            return True
+        if kind == "playback":
+            return self._playback(event[1])
+        if kind in ("show", "started"):
+            return self._command_answered(kind, event[1])
+        if kind == "whatif":
+            return self._set_counterfactual(event[1])
+        if kind == "grounded":
+            key, result = event[1], event[2]
+            self._grounding.discard(key)
+            self._grounded[key] = result
+            return v.episode is not None and key[:2] == (v.episode.id, v.cursor)
+        if kind == "options":
+            return True
+        if kind == "inspect":
+            v.inspected = (event[1], event[2])
+            return True
+        if kind == "task_visible":
+            with self.server.atomic():
+                self.scene.set_task_visible(bool(self.show_task.value))
+            return False
+        return False
+
+    def _command_answered(self, kind: str, future: Future) -> bool:
+        try:
+            result = future.result()
+        except RunnerError as e:
+            self.status.content = error_html(f"**Not started:** {html.escape(str(e))}")
+            if kind == "started":
+                self.instruction_note.content = self.status.content
+            return False
+        except Exception as e:  # noqa: BLE001
+            self.status.content = f"**Error:** {html.escape(str(e))}"
+            return False
+        if kind == "started":
+            self.instruction_note.content = ""
+            self.status.content = f"Episode {result.id} queued."
+        return False
+
+    def _show_world(self, shown: WorldShown) -> None:
+        self.world_shown = shown
+        v = self.view
+        v.episode, v.cursor, v.follow, v.replaying = None, 0, True, False
+        with self.server.atomic():
+            if self.scene.world != shown.world:
+                self.scene.draw_world(shown.world, self._on_ground_click)
+                self.scene.mark_cell(None, 1.0)
+                v.inspected = None
+            self.scene.clear_layers()
+            self.scene.clear_path()
+            self.scene.draw_counterfactual(None)
+            task = shown.task
+            self.scene.draw_task(task.instruction if task else None, task.path if task else None)
+            self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)
+        self.camera.image = upscale(shown.image, 2)
+        world = shown.world
+        self.env_number.value = world.env_id
+        self.split.value = world.split
+        if task is not None:
+            self.instruction.value = task.instruction.text
+            self.whatif.value = other_side(task.instruction.text, task.instruction.side)
+        names = ", ".join(sorted({lm.noun_phrase for lm in world.landmarks}))
+        self.instruction_note.content = ""
+        self.status.content = (f"**Environment {world.env_id}** ({world.split}): {len(world.landmarks)} landmarks "
+                               f"({html.escape(names)}). Press **Run**.")
+        self.result.content = ""
+        self.readout.content = f"Step 0 of environment {world.env_id}, at the start corner."
+        self.maps.content = placeholder_html("Run an episode to see the model's maps, live at every step.")
+        self._set_timeline(0, 0)
+
+    def _start(self, episode: Episode) -> None:
+        v = self.view
+        v.episode, v.cursor, v.follow, v.replaying, v.plot_steps = episode, 0, True, False, -1
+        self.follow.value = True
+        world = episode.task.world
+        self.world_shown = None
+        with self.server.atomic():
+            if self.scene.world != world:
+                self.scene.draw_world(world, self._on_ground_click)
+                self.scene.mark_cell(None, 1.0)
+                v.inspected = None
+            self.scene.clear_path()
+            self.scene.draw_task(episode.task.instruction, episode.task.path)
+            self.scene.draw_counterfactual(None)
+        if v.counterfactual is not None:
+            self._draw_counterfactual_task(episode, v.counterfactual)
+        self.env_number.value = world.env_id
+        self.split.value = world.split
+        self.instruction.value = episode.instruction
+        if v.counterfactual is None:
+            self.whatif.value = other_side(episode.instruction, episode.task.instruction.side)
+        self.result.content = ""
+        self.status.content = status_line(episode)
+
+    def _playback(self, button: str) -> bool:
+        v, episode = self.view, self.view.episode
+        live = episode is not None and episode.live
+        if button == "Play":
+            if live:
+                self.runner.post(Resume())
+                v.follow = True
+                self.follow.value = True
+            elif episode is not None and episode.steps:
+                if v.cursor >= len(episode.steps) - 1:
+                    v.cursor = 0
+                v.replaying = True
+                self._last_replay = time.perf_counter()
+                return True
+            else:
+                self._run(paused=False)
+        elif button == "Pause":
+            if live:
+                self.runner.post(Pause())
+            v.replaying = False
+        elif button == "Step":
+            if live:
+                self.runner.post(StepOnce())
+                v.follow = True
+                self.follow.value = True
+            elif episode is not None and episode.steps:
+                v.replaying = False
+                v.cursor = min(v.cursor + 1, len(episode.steps) - 1)
+                return True
+            else:
+                self._run(paused=True)
+        elif button == "Stop":
+            v.replaying = False
+            if live:
+                self.runner.post(Cancel())
+        return False
+
+    def _replay_tick(self) -> bool:
+        v = self.view
+        if not v.replaying or v.episode is None:
+            return False
+        now = time.perf_counter()
+        if now - self._last_replay < 1.0 / REPLAY_STEPS_PER_SECOND:
+            return False
+        self._last_replay = now
+        if v.cursor >= len(v.episode.steps) - 1:
+            v.replaying = False
+            return False
+        v.cursor += 1
+        return True
+
+    # -- counterfactual -----------------------------------------------------------------------------------------
+    def _set_counterfactual(self, text: str | None) -> bool:
+        v = self.view
+        if not text:
+            v.counterfactual = None
+            with self.server.atomic():
+                self.scene.draw_counterfactual(None)
+            self.whatif_note.content = "Counterfactual cleared: the maps are the episode's own again."
+            return True
+        episode = v.episode
+        if episode is None or not episode.steps:
+            self.whatif_note.content = "Run an episode first: the counterfactual is grounded on its semantic map."
+            return False
+        if episode.checkpoint is None:
+            self.whatif_note.content = ("This episode has no semantic map (no model watched it); load a checkpoint "
+                                        "to ground other instructions.")
+            return False
+        try:
+            instruction = parse_instruction(text, episode.task.world)
+        except InstructionError as e:
+            self.whatif_note.content = error_html(f"**Cannot ground this:** {html.escape(str(e))}")
+            return False
+        v.counterfactual = instruction.text
+        self._draw_counterfactual_task(episode, instruction.text)
+        return True
+
+    def _draw_counterfactual_task(self, episode: Episode, text: str) -> None:
+        try:
+            instruction = parse_instruction(text, episode.task.world)
+        except InstructionError:
+            return
+        with self.server.atomic():
+            self.scene.draw_counterfactual(instruction)
+
+    def _counterfactual_at(self, episode: Episode, step: int) -> Grounding | str | None:
+        """The grounding of the what-if instruction at this step: cached, or requested (None until it comes)."""
+        text = self.view.counterfactual
+        if text is None or episode.checkpoint is None:
+            return None
+        key = (episode.id, step, text)
+        if key in self._grounded:
+            return self._grounded[key]
+        if key in self._grounding:
+            return None
+        if len(self._grounded) > 300:  # about 55 kB each
+            self._grounded.clear()
+        future = self.runner.post(Ground(episode.id, text, step))
+        try:  # the runner answers between two steps: wait that long rather than draw the step twice
+            result: Grounding | str = future.result(timeout=GROUNDING_WAIT)
+        except FutureTimeout:
+            self._grounding.add(key)
+
+            def done(f: Future, key=key) -> None:
+                try:
+                    late: Grounding | str = f.result()
+                except Exception as e:  # noqa: BLE001 - shown to the user
+                    late = str(e)
+                self._events.put(("grounded", key, late))
+
+            future.add_done_callback(done)
+            return None
+        except Exception as e:  # noqa: BLE001 - shown to the user
+            result = str(e)
+        self._grounded[key] = result
+        return result
+
+    # -- drawing ------------------------------------------------------------------------------------------------
+    def _render(self) -> None:
+        v, episode = self.view, self.view.episode
+        if episode is None or not episode.steps:
+            return
+        t0 = time.perf_counter()
+        n = len(episode.steps)
+        t = max(0, min(v.cursor, n - 1))
+        record = episode.steps[t]
+        image = decode_image(record.camera_jpeg)
+        camera_image = upscale(image, 2)  # the panel is wider than the 256-pixel image; keep its pixels sharp
+        counterfactual = self._counterfactual_at(episode, t)
+        grounding = counterfactual if isinstance(counterfactual, Grounding) else None
+        layers = None
+        if record.maps is not None and self.runner.models.get(episode.checkpoint) is not None:
+            heads = self.runner.models[episode.checkpoint].heads
+            m = record.maps
+            rel, goal, goal_r = (grounding.relevance_w, grounding.goal_w, grounding.goal_r) if grounding \
+                else (m.relevance_w, m.goal_w, m.goal_r)
+            layers = build_layers(m.semantic_w, rel, goal, goal_r, heads, self.value_mode.value, self.range_mode.value)
+        positions = np.array([s.position for s in episode.steps[: t + 1]])
+        opacity = float(self.opacity.value)
+        with self.server.atomic():
+            self.scene.set_drone(record.position, record.yaw, record.T_world_camera, image)
+            self.scene.set_path(positions)
+            for name in ("semantic", "relevance", "goal"):
+                visible = bool(self.layer_boxes[name].value) and layers is not None
+                layer = layers[name] if visible else None
+                self.scene.set_layer(name, layer.rgb if layer else None, layer.alpha if layer else None, opacity,
+                                     visible)
+        self.camera.image = camera_image
+        self.readout.content = readout_markdown(episode, t, counterfactual, self.view.counterfactual)
+        self.maps.content = maps_html(episode, t, layers, self.view.counterfactual if grounding else None,
+                                      self._cell_of)
+        if self.view.counterfactual and grounding is not None:
+            self.whatif_note.content = whatif_markdown(grounding, record)
+        elif isinstance(counterfactual, str):
+            self.whatif_note.content = error_html(html.escape(counterfactual))
+        self._inspect(episode, record, grounding)
+        self._set_timeline(t, n - 1)
+        if n != v.plot_steps and (not episode.live or n - v.plot_steps >= 5 or n < 5):
+            self._update_plot(episode)
+            v.plot_steps = n
+        self.frames_drawn += 1
+        if self._clicked_at is not None and episode.started is not None and episode.started > self._clicked_at:
+            self.click_to_frame.append(time.perf_counter() - self._clicked_at)  # the server's share of it
+            self._clicked_at = None
+        if self._whatif_at is not None and grounding is not None:
+            self.whatif_to_frame.append(time.perf_counter() - self._whatif_at)
+            self._whatif_at = None
+        self.render_seconds += time.perf_counter() - t0
+
+    def _inspect(self, episode: Episode, record: StepRecord, grounding: Grounding | None) -> None:
+        xy, model = self.view.inspected, self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
+        if xy is None:
+            return
+        world = episode.task.world
+        with self.server.atomic():
+            self.scene.mark_cell(xy, world.field_size / self.runner.config.model.map_size)
+        if record.maps is None or model is None:
+            self.inspector.content = "No model maps to inspect in this episode."
+            return
+        m = record.maps
+        report = inspect_cell(xy[0], xy[1], m.semantic_w, grounding.relevance_w if grounding else m.relevance_w,
+                              grounding.goal_w if grounding else m.goal_w, model.heads, world)
+        self.inspector.content = inspector_markdown(report, record.step)
+
+    def _set_timeline(self, t: int, last: int) -> None:
+        self.timeline.max = max(1, last)
+        self.timeline.value = t
+        episode = self.view.episode
+        marks = timeline_marks(episode) if episode is not None else ((0, "0"), (1, "1"))
+        if marks != self._marks:
+            self._marks = marks
+            # viser 1.1 takes marks only at creation; its handle keeps them in the `_marks` prop
+            self.timeline._marks = tuple(GuiSliderMark(value=float(v), label=label) for v, label in marks)
+
+    def _update_plot(self, episode: Episode) -> None:
+        steps = episode.steps
+        x = np.arange(len(steps), dtype=np.float64)
+        v = np.array([s.v for s in steps], np.float64)
+        omega = np.array([s.omega for s in steps], np.float64)
+        stop = np.array([s.maps.stop_probability if s.maps else np.nan for s in steps], np.float64)
+        self.plot.data = (x, v, omega, stop)

@@ -1,0 +1,133 @@
+"""End to end in headless Chromium: the page loads, an instruction is typed and run, the camera panel and the map
+layers update while the episode flies, the episode finishes with its result shown, and a counterfactual is
+grounded on the map already built.
+
+Needs the `playwright` package (a dev extra) and a Chromium (Debian's /usr/bin/chromium, which ./test.sh
+installs, or GSMN_CHROMIUM). Without them the test fails rather than skips: a browser test that does not run
+proves nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import time
+
+import playwright.sync_api as playwright_api
+import pytest
+
+from app.fixtures import make_untrained_checkpoint
+
+CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
+HORIZON = 60
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory):
+    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
+    from app.server import Dashboard
+    from gsmn.config import preset, with_overrides
+
+    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
+                  api_port=0, checkpoints_root=tmp_path_factory.mktemp("empty"))
+    yield d
+    d.close()
+
+
+@pytest.fixture(scope="module")
+def page(dashboard):
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.set_default_timeout(60_000)
+        page.goto(dashboard.urls.page)
+        yield page
+        browser.close()
+
+
+def field(page, label: str):
+    """The input of a labelled viser control (viser's <label for> does not point at text inputs)."""
+    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
+        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
+
+
+def maps_state(page) -> dict:
+    return page.evaluate("""() => {
+        const m = document.querySelector('.gsmn-maps');
+        const img = [...document.querySelectorAll('img')].find(i => i.closest('div') &&
+            i.naturalWidth === 512 && i.naturalHeight === 288);
+        const layer = document.querySelector('.gsmn-maps img[data-layer="goal"]');
+        return {episode: m ? m.dataset.episode : null, step: m && m.dataset.step !== '' ? +m.dataset.step : -1,
+                counterfactual: m ? m.dataset.counterfactual : null, camera: img ? img.src : null,
+                goal: layer ? layer.src : null};
+    }""")
+
+
+def wait_until(page, predicate, timeout: float = 90.0, what: str = "") -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        state = maps_state(page)
+        if predicate(state):
+            return state
+        page.wait_for_timeout(100)
+    raise AssertionError(f"timed out waiting for {what}; last state {maps_state(page)}")
+
+
+def test_type_run_watch_finish_and_ask_what_if(dashboard, page):
+    run = page.get_by_role("button", name="Run", exact=True)
+    run.wait_for()
+    instruction = field(page, "Instruction")
+    assert "pumpkin" in instruction.input_value()  # opens on environment 70 with its own instruction
+
+    # an instruction naming no landmark of this world is refused, with the reason shown
+    instruction.fill("go to the left side of the anvil")
+    instruction.press("Enter")
+    page.get_by_text("no anvil in this world").first.wait_for()
+    run.click()
+    page.get_by_text("Not started").first.wait_for()
+    instruction.fill("go to the left side of the moon")
+    instruction.press("Enter")
+    page.get_by_text("unknown word: moon").first.wait_for()
+
+    instruction.fill("go to the back side of the box")
+    instruction.press("Enter")
+    page.get_by_text("Understood").first.wait_for()
+    field(page, "Relevance map").click()  # a second ground layer on
+    before = maps_state(page)
+    run.click()
+    first = wait_until(page, lambda s: s["episode"] not in (None, "", before["episode"]) and s["step"] >= 0,
+                       what="the first streamed frame")
+    later = wait_until(page, lambda s: s["episode"] == first["episode"] and s["step"] >= first["step"] + 3,
+                       what="later frames")
+    assert later["camera"] and later["camera"] != first["camera"]  # the camera panel moves with the drone
+    assert later["goal"] and later["goal"] != first["goal"]  # the map panels update at every step
+    scene = dashboard.viewer.scene
+    assert scene.layers["goal"].visible and scene.layers["relevance"].visible  # the ground layers are drawn
+    assert not scene.layers.get("semantic") or not scene.layers["semantic"].visible
+
+    episode = dashboard.runner.episodes.get(int(first["episode"]))
+    assert episode.instruction == "go to the back side of the box"
+    page.get_by_text("P(stop) at the end").first.wait_for(timeout=120_000)  # the result table
+    assert page.get_by_text("Success").count() + page.get_by_text("Failure").count() >= 1
+    assert page.get_by_text("distance to goal").count() >= 1
+    assert episode.status == "finished"
+
+    # scrub the timeline: every view follows the cursor
+    page.get_by_role("button", name="Step", exact=True).click()  # a finished episode: Step moves the cursor
+    wait_until(page, lambda s: s["step"] == len(episode.steps) - 1, what="the cursor at the end")
+
+    # counterfactual on the map already built: no new episode, the maps marked as what-if
+    episodes_before = len(dashboard.runner.episodes)
+    whatif = field(page, "What if")
+    whatif.fill("go to the front side of the car")
+    whatif.press("Enter")
+    page.get_by_role("button", name="Ground", exact=True).click()
+    wait_until(page, lambda s: s["counterfactual"] == "1", what="the counterfactual maps")
+    page.get_by_text("What if \"go to the front side of the car\"").first.wait_for()
+    assert len(dashboard.runner.episodes) == episodes_before
+    page.get_by_role("button", name="Clear", exact=True).click()
+    wait_until(page, lambda s: s["counterfactual"] == "0", what="the episode's own maps again")

@@ -1,0 +1,214 @@
+"""Dashboard units without a simulator: colours and legends, map layers and their orientation, the episode store,
+the success quadrant drawn on the ground, and the text the page shows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.colors import (
+    UNSEEN_RGB,
+    apply_colormap,
+    class_palette,
+    colorbar_html,
+    decode_image,
+    jpeg_bytes,
+    png_bytes,
+    semantic_classes,
+    semantic_legend_html,
+    semantic_rgb,
+    upscale,
+    with_alpha,
+)
+from app.layers import MapHeads, build_layers, positive_probability, world_cell
+from app.panels import maps_html, mark_cells, other_side, readout_markdown, result_markdown
+from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
+from app.scene import quadrant_angles
+from gsmn.config import preset
+from gsmn.task.instructions import SIDES, make_instruction
+from gsmn.task.metrics import side_of
+from gsmn.task.rollout import Task
+from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.spec import world_for_env
+
+
+def test_colormap_spans_its_range_and_clips():
+    values = np.array([[-1.0, 0.0, 0.5, 1.0, 2.0, np.nan]])
+    rgb = apply_colormap(values, 0.0, 1.0)
+    assert rgb.shape == (1, 6, 3) and rgb.dtype == np.uint8
+    assert (rgb[0, 0] == rgb[0, 1]).all() and (rgb[0, 3] == rgb[0, 4]).all()  # clipped to the ends
+    assert tuple(rgb[0, 1]) == (68, 1, 84) and tuple(rgb[0, 3]) == (253, 231, 37)  # viridis ends
+    assert (rgb[0, 5] == rgb[0, 1]).all()  # NaN shows as the low end
+    # viridis gets brighter monotonically: a person can read order from it
+    ramp = apply_colormap(np.linspace(0, 1, 50)[None], 0, 1)[0].astype(float)
+    luminance = ramp @ np.array([0.2126, 0.7152, 0.0722])
+    assert (np.diff(luminance) >= -1e-9).all()
+    bar = colorbar_html(0.0, 1.0, label="P(goal)")
+    assert "0.00" in bar and "1.00" in bar and "P(goal)" in bar and "linear-gradient" in bar
+
+
+def test_class_palette_is_distinct():
+    palette = class_palette(len(CATALOGUE)).astype(int)
+    assert palette.shape == (63, 3)
+    distances = np.abs(palette[:, None] - palette[None]).sum(-1) + np.eye(63, dtype=int) * 999
+    assert distances.min() >= 12  # no two classes share (nearly) one colour
+
+
+def test_semantic_classes_pick_the_head_argmax_and_mark_unseen_cells():
+    C, K = 4, 3
+    weight = np.zeros((K, C), np.float32)
+    weight[0, 0] = weight[1, 1] = weight[2, 2] = 5.0
+    semantic = np.zeros((C, 2, 3), np.float16)
+    semantic[0, 0, 0] = 1.0  # class 0
+    semantic[1, 0, 1] = 1.0  # class 1
+    semantic[2, 1, 2] = 1.0  # class 2; the rest never observed (exactly zero)
+    classes, confidence, observed = semantic_classes(semantic, weight, np.zeros(K, np.float32))
+    assert classes[0, 0] == 0 and classes[0, 1] == 1 and classes[1, 2] == 2
+    assert observed.tolist() == [[True, True, False], [False, False, True]]
+    assert confidence[0, 0] > 0.9
+    palette = class_palette(K)
+    rgb = semantic_rgb(classes, confidence, observed, palette)
+    assert tuple(rgb[0, 2]) == UNSEEN_RGB
+    assert (rgb[0, 0] <= palette[0]).all() and rgb[0, 0].sum() > 0.9 * palette[0].sum()  # sure: near full colour
+    legend = semantic_legend_html(classes, observed, palette, ["tree", "barrel", "box"])
+    assert "tree" in legend and "barrel" in legend and "box" in legend and "not seen" in legend
+
+
+def test_upscale_keeps_cells_sharp_and_png_round_trips():
+    cells = np.arange(12, dtype=np.uint8).reshape(2, 2, 3) * 20
+    big = upscale(cells, 4)
+    assert big.shape == (8, 8, 3)
+    assert (big[:4, :4] == cells[0, 0]).all() and (big[4:, 4:] == cells[1, 1]).all()
+    assert (decode_image(png_bytes(big)) == big).all()  # PNG: lossless, no smearing of categorical maps
+    rgba = with_alpha(big, 0.5)
+    assert rgba.shape == (8, 8, 4) and (rgba[..., 3] == 128).all()
+    photo = (np.random.default_rng(0).random((144, 256, 3)) * 255).astype(np.uint8)
+    assert decode_image(jpeg_bytes(photo)).shape == (144, 256, 3)
+
+
+def _heads(C: int = 32) -> MapHeads:
+    rng = np.random.default_rng(0)
+    return MapHeads(rng.normal(size=(63, C)).astype(np.float32), np.zeros(63, np.float32),
+                    np.array([[0, 0, 0], [1, 0, 0]], np.float32), np.zeros(2, np.float32),
+                    np.array([[0, 0], [1, 0]], np.float32), np.zeros(2, np.float32),
+                    tuple(m.noun_phrase for m in CATALOGUE))
+
+
+def test_positive_probability_is_the_binary_head_softmax():
+    maps = np.zeros((3, 2, 2), np.float32)
+    maps[0, 0, 0] = 10.0
+    p = positive_probability(maps, np.array([[0, 0, 0], [1, 0, 0]], np.float32), np.zeros(2, np.float32))
+    assert p[0, 0] > 0.99 and abs(p[1, 1] - 0.5) < 1e-6
+
+
+def test_layers_keep_the_north_up_layout():
+    """A value at row 0, column 31 of a world map is the north-east corner: it must stay there in every layer."""
+    heads = _heads()
+    semantic = np.zeros((32, 32, 32), np.float16)
+    semantic[:, :, :] = 0.1
+    relevance = np.zeros((3, 32, 32), np.float32)
+    relevance[0, 0, 31] = 10.0  # the north-east cell
+    goal = np.zeros((2, 32, 32), np.float32)
+    goal[0, 0, 31] = 10.0
+    goal_r = np.zeros((2, 64, 64), np.float32)
+    goal_r[0, 0, 32] = 10.0  # straight ahead, at the far edge
+    for range_mode in ("fixed", "frame"):
+        layers = build_layers(semantic, relevance, goal, goal_r, heads, "probability", range_mode)
+        assert set(layers) == {"semantic", "relevance", "goal", "goal_robot"}
+        for name in ("relevance", "goal"):
+            values = layers[name].values
+            assert np.unravel_index(values.argmax(), values.shape) == (0, 31)
+            assert layers[name].rgb.shape == (32, 32, 3)
+            # the ground overlay is most opaque where the map is high
+            assert layers[name].alpha[0, 31] == layers[name].alpha.max()
+        assert np.unravel_index(layers["goal_robot"].values.argmax(), (64, 64)) == (0, 32)
+    raw = build_layers(semantic, relevance, goal, goal_r, heads, "raw", "frame")
+    assert raw["goal"].values[0, 31] == 10.0
+    with pytest.raises(ValueError, match="value_mode"):
+        build_layers(semantic, relevance, goal, goal_r, heads, "nonsense")
+
+
+def test_world_cell_matches_the_model_layout():
+    # docs/model.md: cell (r, c) is centred at x = (c + 0.5) s, y = 30 - (r + 0.5) s with s = 0.9375 m
+    s = 30 / 32
+    for r, c in [(0, 0), (0, 31), (31, 0), (17, 5)]:
+        assert world_cell((c + 0.5) * s, 30 - (r + 0.5) * s, 30.0, 32) == (r, c)
+    image = np.zeros((8, 8, 3), np.uint8)
+    mark_cells(image, [(0, 1, (255, 0, 0)), (5, 5, (1, 1, 1))], 4)  # (5, 5) lies outside a 2 x 2 map: ignored
+    assert (image[0, 4:8] == (255, 0, 0)).all() and (image[1:3, 5:7] == 0).all()
+
+
+def test_episode_store_drops_the_oldest_finished_only():
+    store = EpisodeStore(limit=2)
+    world = world_for_env(70)
+    task = Task(world, make_instruction(world, 0, "left"), np.zeros((2, 2)))
+    episodes = []
+    for status in (FINISHED, RUNNING, QUEUED, FINISHED):
+        e = Episode(id=store.new_id(), task=task, policy="expert", system="oracle", checkpoint=None, horizon=150,
+                    status=status)
+        episodes.append(e)
+        store.add(e)
+    ids = [e.id for e in store.all()]
+    assert episodes[0].id not in ids  # finished and oldest: dropped
+    assert episodes[1].id in ids and episodes[2].id in ids  # live ones are never dropped
+    assert store.get(12345) is None
+    with pytest.raises(ValueError):
+        EpisodeStore(limit=0)
+
+
+def test_the_drawn_quadrant_is_the_one_the_metric_accepts():
+    world = world_for_env(70)
+    for index in range(len(world.landmarks)):
+        for side in SIDES:
+            instruction = make_instruction(world, index, side)
+            a0, a1 = quadrant_angles(world, instruction)
+            lm = world.landmarks[index]
+            middle = (a0 + a1) / 2
+            assert math.isclose(a1 - a0, math.pi / 2)
+            for angle in (middle, a0 + 0.05, a1 - 0.05):
+                point = (lm.x + 3 * math.cos(angle), lm.y + 3 * math.sin(angle))
+                assert side_of((lm.x, lm.y), world.start_position, point) == side
+            # the goal lies on the drawn quadrant's bisector
+            goal_angle = math.atan2(instruction.goal_y - lm.y, instruction.goal_x - lm.x)
+            assert math.isclose(math.cos(goal_angle - middle), 1.0, abs_tol=1e-9)
+
+
+def _episode_with_steps() -> Episode:
+    from app.recording import StepMaps, StepRecord
+    from gsmn.task.rollout import EpisodeRecord
+
+    world = world_for_env(70, preset("tiny").world)
+    instruction = make_instruction(world, 0, "left")
+    e = Episode(id=7, task=Task(world, instruction, np.zeros((2, 2))), policy="model", system="gsmn",
+                checkpoint="ckpt", horizon=150, status=FINISHED)
+    maps = StepMaps(np.zeros((32, 32, 32), np.float16), np.zeros((32, 32), np.float16),
+                    np.zeros((3, 32, 32), np.float16), np.zeros((2, 32, 32), np.float16),
+                    np.zeros((2, 64, 64), np.float16), np.zeros(3, np.float32), 1.2, -0.3, 0.7)
+    e.steps.append(StepRecord(0, 0.0, (30.0, 0.0, 5.0), 2.3, np.eye(4, dtype=np.float32), b"", 1.2, -0.3, True,
+                              maps))
+    record = EpisodeRecord(system="gsmn", env_id=70, instruction=instruction.text, landmark_index=0,
+                           noun_phrase=instruction.noun_phrase, side="left", ambiguous=False,
+                           goal_x=instruction.goal_x, goal_y=instruction.goal_y, landmark_x=world.landmarks[0].x,
+                           landmark_y=world.landmarks[0].y, start_x=world.start_x, start_y=world.start_y,
+                           final_x=30.0, final_y=0.0, steps=0, stopped=True, success=False, landmark_success=False,
+                           goal_distance=12.5, trajectory=(), actions=())
+    e.result = EpisodeResult.of(record, 0.7)
+    return e
+
+
+def test_the_page_text_says_the_result_plainly():
+    e = _episode_with_steps()
+    text = result_markdown(e)
+    assert "Failure" in text and "12.5 m" in text and "said STOP after **0** steps" in text
+    assert "asked **left**" in text and "0.70" in text
+    readout = readout_markdown(e, 0, None, None)
+    assert "Step 0" in readout and "P(stop) 0.70" in readout and "STOP" in readout
+    assert other_side("go to the left side of the barrel", "left") == "go to the right side of the barrel"
+    layers = build_layers(*(getattr(e.steps[0].maps, k) for k in ("semantic_w", "relevance_w", "goal_w", "goal_r")),
+                          _heads())
+    page = maps_html(e, 0, layers, None, lambda x, y: world_cell(x, y, 30.0, 32))
+    assert 'data-episode="7"' in page and 'data-step="0"' in page and page.count("data:image/png;base64,") == 4
+    assert "image-rendering:pixelated" in page
+    assert "No model maps" in maps_html(e, 0, None, None, None)
