@@ -23,11 +23,10 @@ import torch.nn as nn
 
 from gsmn.config import RunConfig
 from gsmn.model.controller import DensePerceptron, split_actions
-from gsmn.model.filters import GoalFilter, RelevanceFilter
 from gsmn.model.grid import MapGeometry
+from gsmn.model.gsmn import add_shared_modules
 from gsmn.model.heads import AuxiliaryHeads
-from gsmn.model.language import InstructionEncoder
-from gsmn.model.perception import DOWNSCALE, ResNet13, standardise
+from gsmn.model.perception import DOWNSCALE, standardise
 from gsmn.task.instructions import SIDES
 from gsmn.world.landmarks import CATALOGUE
 
@@ -63,12 +62,7 @@ class GSFPV(nn.Module):
         self.geometry = MapGeometry(config.world.field_size, m.map_size, m.robot_map_size)  # for the labels only
         self.image_size = (config.camera.width, config.camera.height)
         slope = m.leaky_relu_slope
-        self.encoder = InstructionEncoder(vocabulary_size, m.word_embedding_dim, m.instruction_hidden)
-        self.resnet = ResNet13(m.feature_channels, slope, m.channels_last, m.inference_bf16)
-        self.relevance_filter = RelevanceFilter(m.instruction_hidden, m.feature_channels, m.relevance_channels,
-                                                m.filter_init_std, slope)
-        self.goal_filter = GoalFilter(m.instruction_hidden, m.relevance_channels, m.goal_channels, 3,
-                                      m.filter_init_std, slope)
+        add_shared_modules(self, m, vocabulary_size)
         h, w = config.camera.height // DOWNSCALE, config.camera.width // DOWNSCALE
         map_features = (m.relevance_channels + m.goal_channels) * h * w  # 5 * 18 * 32 = 2880
         self.memory = nn.LSTM(map_features, m.fpv_memory, batch_first=True) if memory else None

@@ -25,7 +25,7 @@ from dataclasses import dataclass, fields
 import torch
 import torch.nn as nn
 
-from gsmn.config import RunConfig
+from gsmn.config import ModelConfig, RunConfig
 from gsmn.model.controller import MapController, split_actions
 from gsmn.model.filters import GoalFilter, RelevanceFilter
 from gsmn.model.frames import FrameTransform
@@ -87,6 +87,18 @@ class GSMNOutputs:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name[-2:] in ("_c", "_w", "_r")}
 
 
+def add_shared_modules(module: nn.Module, m: ModelConfig, vocabulary_size: int) -> None:
+    """The pieces GSMN shares with the first-person baselines, as `module`'s `encoder`, `resnet`,
+    `relevance_filter` and `goal_filter` (same attribute names, so checkpoints keep their keys)."""
+    slope = m.leaky_relu_slope
+    module.encoder = InstructionEncoder(vocabulary_size, m.word_embedding_dim, m.instruction_hidden)
+    module.resnet = ResNet13(m.feature_channels, slope, m.channels_last, m.inference_bf16)
+    module.relevance_filter = RelevanceFilter(m.instruction_hidden, m.feature_channels, m.relevance_channels,
+                                              m.filter_init_std, slope)
+    module.goal_filter = GoalFilter(m.instruction_hidden, m.relevance_channels, m.goal_channels, 3,
+                                    m.filter_init_std, slope)
+
+
 class GSMN(nn.Module):
     """GSMN for a run config (camera size, field size, model sizes) and a vocabulary size."""
 
@@ -101,12 +113,7 @@ class GSMN(nn.Module):
         self.register_buffer("ground_points_w", ground_points(self.geometry), persistent=False)  # (n*n, 4)
         self.frames = FrameTransform(self.geometry)
         slope = m.leaky_relu_slope
-        self.encoder = InstructionEncoder(vocabulary_size, m.word_embedding_dim, m.instruction_hidden)
-        self.resnet = ResNet13(m.feature_channels, slope, m.channels_last, m.inference_bf16)
-        self.relevance_filter = RelevanceFilter(m.instruction_hidden, m.feature_channels, m.relevance_channels,
-                                                m.filter_init_std, slope)
-        self.goal_filter = GoalFilter(m.instruction_hidden, m.relevance_channels, m.goal_channels, 3,
-                                      m.filter_init_std, slope)
+        add_shared_modules(self, m, vocabulary_size)
         self.controller = MapController(m.relevance_channels + m.goal_channels, m.robot_map_size, m.controller_hidden,
                                         m.controller_dropout, m.instruction_hidden * m.controller_uses_instruction,
                                         slope)
