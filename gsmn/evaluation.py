@@ -89,7 +89,10 @@ def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render:
         import torch
 
         torch.set_num_threads(threads)
-    policy = make_policy(system, config, checkpoint)
+    _use(make_policy(system, config, checkpoint), config, render)
+
+
+def _use(policy: Policy, config: RunConfig, render: bool | None) -> None:
     render = policy.needs_images if render is None else render
     _worker.update(config=config, policy=policy, env=Env(config, render=render))
 
@@ -106,10 +109,10 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
     """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
     on or off (default: only for policies that look)."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
-    make_policy(system, config, checkpoint)  # fail here, clearly, before any worker starts
+    policy = make_policy(system, config, checkpoint)  # fails here, clearly, before any worker starts
     records = []
     if workers <= 1:
-        _init_worker(system, config, checkpoint, render)
+        _use(policy, config, render)
         try:
             for env_id in env_ids:
                 records.append(_run_one(env_id))

@@ -91,7 +91,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     run.trim_log(state.epoch)
     expert_keys = expert_store.keys()
     if env_ids is None:
-        env_ids = sorted({expert_store.read_with_meta(k)[1].get("env_id", -1) for k in expert_keys} - {-1})
+        env_ids = sorted({expert_store.read_meta(k).get("env_id", -1) for k in expert_keys} - {-1})
     if not env_ids:
         raise ValueError("no environments to roll out in: give env_ids or an expert store with env ids")
 
@@ -153,7 +153,7 @@ def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> Pr
 def _mixture_counts(dataset: EpisodeStore, jobs: list) -> dict[str, int]:
     expert = learner = 0
     for key, *_ in jobs:
-        meta = dataset.read_with_meta(key)[1]
+        meta = dataset.read_meta(key)
         expert += meta["expert_steps"]
         learner += meta["learner_steps"]
     return {"expert": expert, "learner": learner}

@@ -67,18 +67,26 @@ class EpisodeStore:
         return self.read_with_meta(key)[0]
 
     def read_with_meta(self, key: str) -> tuple[EpisodeSample, dict]:
+        entries = self._load(key, (*_ARRAYS, "json"))
+        d = json.loads(entries.pop("json").tobytes().decode())
+        world = WorldSpec.from_dict(d["world"])
+        sample = EpisodeSample(world=world, instruction=Instruction(**d["instruction"]), **entries)
+        return sample, d["meta"]
+
+    def read_meta(self, key: str) -> dict:
+        """An episode's metadata alone, without decompressing its images."""
+        return json.loads(self._load(key, ("json",))["json"].tobytes().decode())["meta"]
+
+    def _load(self, key: str, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+        """The named arrays of an episode file (an .npz decompresses only the entries asked for)."""
         path = self.path(key)
         try:
             with np.load(path, allow_pickle=False) as f:
-                arrays = {name: f[name] for name in _ARRAYS}
-                d = json.loads(f["json"].tobytes().decode())
+                return {name: f[name] for name in names}
         except FileNotFoundError:
             raise StoreError(f"no episode {key!r} in {self.root}") from None
         except (OSError, KeyError, ValueError) as e:
             raise StoreError(f"episode file {path} is malformed: {e}") from e
-        world = WorldSpec.from_dict(d["world"])
-        sample = EpisodeSample(world=world, instruction=Instruction(**d["instruction"]), **arrays)
-        return sample, d["meta"]
 
     def delete(self, key: str) -> None:
         self.path(key).unlink(missing_ok=True)
@@ -88,12 +96,8 @@ class EpisodeStore:
             yield self.read(key)
 
     def frames(self) -> int:
-        """Total number of frames (reads only the small arrays' headers)."""
-        total = 0
-        for key in self.keys():
-            with np.load(self.path(key), allow_pickle=False) as f:
-                total += len(f["poses"])
-        return total
+        """Total number of frames (reads only the small pose arrays)."""
+        return sum(len(self._load(key, ("poses",))["poses"]) for key in self.keys())
 
 
 def _instruction_dict(instruction: Instruction) -> dict:
