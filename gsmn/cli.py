@@ -21,7 +21,7 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         flag = "--" + path.replace("_", "-")
         name = getattr(hint, "__name__", str(hint))
         group.add_argument(flag, dest="cfg:" + path, metavar=name.upper(), default=None,
-                           help=f"{f.metadata.get('help', '')} (default: {f.default})")
+                           help=f"{f.metadata.get('help', '')} (default: {f.default})".replace("%", "%%"))
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:
