@@ -99,15 +99,25 @@ def _progress(total: int, desc: str):
 def cmd_eval(args: argparse.Namespace) -> int:
     import time
 
-    from gsmn.evaluation import TABLE_HEADER, env_ids_for, evaluate, results_dict, table_row, write_json
+    from gsmn.evaluation import TABLE_HEADER, ProgressLog, env_ids_for, evaluate, results_dict, table_row, write_json
     from gsmn.task.metrics import summarize
 
     config = config_from_args(args)
     env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
+    if args.threads is not None:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    progress = ProgressLog(Path(args.progress), len(env_ids)) if args.progress else None
     t0 = time.perf_counter()
     with _progress(len(env_ids), args.system) as bar:
-        records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers,
-                           on_episode=lambda r: bar.update(1))
+        def on_episode(record) -> None:
+            bar.update(1)
+            if progress is not None:
+                progress.write(record)
+
+        records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers, on_episode=on_episode,
+                           record_dir=args.record)
     seconds = time.perf_counter() - t0
     summary = summarize(records, config.task.success_radius)
     print(TABLE_HEADER)
@@ -247,6 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-ids", default=None, help="'A:B' or '3,17,42' instead of a split")
     p.add_argument("--json", default=None, help="write per-episode records and the summary here")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    p.add_argument("--threads", type=int, default=None, help="torch threads in this process (default: torch's own)")
+    p.add_argument("--record", default=None, help="folder for each episode's final maps and per-step readings "
+                   "(GSMN only), for failure attribution")
+    p.add_argument("--progress", default=None, help="append one JSON line per finished episode to this file")
     add_config_arguments(p)
     p.set_defaults(func=cmd_eval)
 

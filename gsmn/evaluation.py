@@ -4,6 +4,9 @@ unambiguous subset in brackets).
 
 Workers are separate processes started with "spawn" (a forked MuJoCo/EGL context is not safe); each holds
 its own environment and policy and flies whole episodes. Results come back in the order of the ids.
+
+With `record_dir`, a GSMN's final maps and per-step readings of each episode are written there
+(`gsmn.attribution.ModelTrace`, one .npz per environment), for failure attribution and the dashboard.
 """
 
 from __future__ import annotations
@@ -84,35 +87,47 @@ _worker: dict = {}
 
 
 def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, record_dir: str | None = None) -> None:
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    _use(make_policy(system, config, checkpoint), config, render)
+    _use(make_policy(system, config, checkpoint), config, render, record_dir)
 
 
-def _use(policy: Policy, config: RunConfig, render: bool | None) -> None:
+def _use(policy: Policy, config: RunConfig, render: bool | None, record_dir: str | None = None) -> None:
     render = policy.needs_images if render is None else render
-    _worker.update(config=config, policy=policy, env=Env(config, render=render))
+    if record_dir is not None and policy.name in ("gsmn", "gsmn-no-plan"):  # the models with world maps
+        from gsmn.attribution import TraceRecorder
+
+        policy = TraceRecorder(policy)
+    _worker.update(config=config, policy=policy, env=Env(config, render=render), record_dir=record_dir)
 
 
 def _run_one(env_id: int) -> EpisodeRecord:
     config: RunConfig = _worker["config"]
-    return rollout(_worker["env"], _worker["policy"], task_for_env(env_id, config), config.task.horizon,
-                   success_radius=config.task.success_radius)
+    policy = _worker["policy"]
+    record = rollout(_worker["env"], policy, task_for_env(env_id, config), config.task.horizon,
+                     success_radius=config.task.success_radius)
+    if _worker.get("record_dir") is not None and hasattr(policy, "trace"):
+        from gsmn.attribution import save_trace, trace_path
+
+        save_trace(trace_path(_worker["record_dir"], env_id), policy.trace())
+    return record
 
 
 def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint: str | Path | None = None,
              workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
-             render: bool | None = None) -> list[EpisodeRecord]:
+             render: bool | None = None, record_dir: str | Path | None = None) -> list[EpisodeRecord]:
     """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
-    on or off (default: only for policies that look)."""
+    on or off (default: only for policies that look). `record_dir`: write each episode's ModelTrace there
+    (GSMN only; other systems have no maps and write nothing)."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
+    record_dir = str(record_dir) if record_dir is not None else None
     policy = make_policy(system, config, checkpoint)  # fails here, clearly, before any worker starts
     records = []
     if workers <= 1:
-        _use(policy, config, render)
+        _use(policy, config, render, record_dir)
         try:
             for env_id in env_ids:
                 records.append(_run_one(env_id))
@@ -123,7 +138,7 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
         return records
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                             initargs=(system, config, checkpoint, render, 1)) as pool:  # a core each
+                             initargs=(system, config, checkpoint, render, 1, record_dir)) as pool:  # a core each
         for record in pool.map(_run_one, env_ids):
             records.append(record)
             if on_episode:
@@ -161,3 +176,19 @@ def write_json(path: Path, results: dict) -> None:
     tmp.write_text(json.dumps(results) + "\n")
     tmp.replace(path)
 
+
+
+class ProgressLog:
+    """One JSON line per finished episode (the record without its trajectory, and how many are done of how
+    many), flushed at once: what a monitor such as the dashboard reads while an evaluation runs."""
+
+    def __init__(self, path: Path, total: int):
+        self.path, self.total, self.done = Path(path), total, 0
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text("")
+
+    def write(self, record: EpisodeRecord) -> None:
+        self.done += 1
+        line = {k: v for k, v in record.to_dict().items() if k not in ("trajectory", "actions")}
+        with self.path.open("a") as f:
+            f.write(json.dumps({"done": self.done, "total": self.total, **line}) + "\n")

@@ -1,0 +1,310 @@
+"""Failure attribution from the model's own auxiliary heads (paper: Auxiliary Objectives, read backwards).
+
+GSMN's auxiliary heads say what the model believes at each stage of its pipeline, so a failed episode can be
+traced to the first stage that went wrong, using the maps the model held when the episode ended:
+
+    perception  was the named landmark perceived: the perception head's most likely landmark at the cell of its
+                centre (the cell J_percept is trained on) has the landmark's name; "never seen" when the camera
+                never covered that cell;
+    grounding   was it grounded: P(named landmark) from the grounding head is higher at its cell than at the
+                cell of every other landmark of the world (landmarks sharing its name do not compete);
+    goal        was the goal placed right: stopping at the peak of P(goal) from the goal head would have been a
+                success (within the landmark region and in the quadrant asked);
+    control     the goal map was right and the drone still ended elsewhere: it stopped away from the goal, or
+                never stopped.
+
+`attribute` is a pure function of those maps, the head weights, the WorldSpec and the instruction; it is unit
+tested on hand-made maps. `TraceRecorder` wraps a GSMN policy during evaluation to keep the final maps and a few
+numbers per step, and `save_trace` / `load_trace` store them (compressed .npz, float16 maps, never unpickled).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from gsmn.task.instructions import Instruction
+from gsmn.task.metrics import side_of
+from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.spec import WorldSpec
+
+STAGES = ("perception", "grounding", "goal", "control")
+STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
+                "control": "control"}
+
+
+class HeadWeights(Protocol):
+    """The auxiliary heads as arrays, weight (K, C) and bias (K,) (app.layers.MapHeads has these)."""
+
+    perception_w: np.ndarray
+    perception_b: np.ndarray
+    grounding_w: np.ndarray
+    grounding_b: np.ndarray
+    goal_w: np.ndarray
+    goal_b: np.ndarray
+
+
+@dataclass(frozen=True)
+class Heads:
+    perception_w: np.ndarray
+    perception_b: np.ndarray
+    grounding_w: np.ndarray
+    grounding_b: np.ndarray
+    goal_w: np.ndarray
+    goal_b: np.ndarray
+
+    @classmethod
+    def of(cls, model) -> Heads:
+        """The heads of a GSMN (gsmn.model.gsmn.GSMN) as float32 arrays."""
+        h = model.heads
+        if h.goal is None:
+            raise ValueError(f"a {model.kind!r} model has no goal head; attribution needs GSMN's maps")
+
+        def arr(t) -> np.ndarray:
+            return t.detach().cpu().float().numpy().copy()
+
+        return cls(arr(h.perception.weight), arr(h.perception.bias), arr(h.grounding.weight),
+                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias))
+
+
+@dataclass(frozen=True)
+class FinalMaps:
+    """The world-frame maps the model held at the last step of an episode, channels first, north-up."""
+
+    semantic_map_w: np.ndarray  # (C_f, n, n)
+    relevance_map_w: np.ndarray  # (3, n, n)
+    goal_map_w: np.ndarray  # (2, n, n)
+
+
+@dataclass(frozen=True)
+class Attribution:
+    """Where a failed episode went wrong (`stage`, one of STAGES; None for a success) and the evidence."""
+
+    stage: str | None
+    reason: str
+    landmark_row: int  # the named landmark's centre cell
+    landmark_col: int
+    observed: bool  # the camera covered that cell at some step
+    perceived: bool
+    top_class: str | None  # the perception head's most likely landmark there (None: never observed)
+    p_landmark_class: float  # the perception head's probability of the landmark's own class there
+    landmark_class_rank: int  # 1 = most likely (ties share a rank)
+    grounded: bool
+    p_named: float  # P(named) at the landmark's cell
+    p_named_other: float | None  # the highest P(named) at another landmark's cell (None: no other landmark)
+    other_landmark: str | None  # ... and that landmark's name
+    goal_right: bool
+    goal_peak_x: float  # the cell centre of the highest P(goal)
+    goal_peak_y: float
+    goal_peak_p: float
+    goal_peak_error: float  # m from that peak to the true goal
+    stopped: bool
+    final_to_peak: float  # m from where the drone ended to the goal peak
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Attribution:
+        return cls(**d)
+
+
+# -- helpers ------------------------------------------------------------------------------------------------------
+def softmax(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    z = x - x.max(axis=axis, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def cell_of(x: float, y: float, field_size: float, n: int) -> tuple[int, int]:
+    """The (row, col) of the north-up world-map cell holding (x, y), clamped into the map (gsmn.model.grid)."""
+    s = field_size / n
+    return min(max(int(math.floor((field_size - y) / s)), 0), n - 1), min(max(int(math.floor(x / s)), 0), n - 1)
+
+
+def cell_centre(row: int, col: int, field_size: float, n: int) -> tuple[float, float]:
+    s = field_size / n
+    return (col + 0.5) * s, field_size - (row + 0.5) * s
+
+
+def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
+    C, H, W = maps.shape
+    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
+        + bias.astype(np.float32)[:, None]  # einsum, not @: see app/colors.semantic_classes
+    return softmax(logits, axis=0)[1].reshape(H, W)
+
+
+def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:
+    """(n, n) bool: cells the camera covered at some step (never-covered cells hold exactly zero)."""
+    return np.abs(semantic_map_w.astype(np.float32)).max(0) > 1e-6
+
+
+def goal_peak(goal_map_w: np.ndarray, heads: HeadWeights) -> tuple[int, int, float]:
+    """(row, col, P(goal)) of the cell with the highest P(goal)."""
+    p = positive_probability(goal_map_w, heads.goal_w, heads.goal_b)
+    k = int(np.argmax(p))
+    return k // p.shape[1], k % p.shape[1], float(p.flat[k])
+
+
+# -- the attribution ----------------------------------------------------------------------------------------------
+def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction: Instruction,
+              final_xy: tuple[float, float], stopped: bool, success: bool, success_radius: float = 6.0
+              ) -> Attribution:
+    """Attribute an episode's outcome to the first stage of the pipeline the model got wrong (see the module
+    docstring). `success` is the episode's own metric; for a success the stage is None and the evidence is
+    still filled in."""
+    F = world.field_size
+    n = maps.semantic_map_w.shape[-1]
+    target = world.landmarks[instruction.landmark_index]
+    r, c = cell_of(target.x, target.y, F, n)
+
+    # perception at the landmark's cell
+    feature = maps.semantic_map_w[:, r, c].astype(np.float32)
+    observed = bool(np.abs(feature).max() > 1e-6)
+    probs = softmax(np.einsum("kc,c->k", heads.perception_w.astype(np.float32), feature)
+                    + heads.perception_b.astype(np.float32))
+    order = np.argsort(-probs, kind="stable")
+    rank = 1 + int((probs > probs[target.class_id]).sum())  # ties share a rank
+    top = CATALOGUE[int(order[0])].noun_phrase if observed else None
+    perceived = observed and top == target.noun_phrase  # models sharing a name (4 palm trees) count as right
+
+    # grounding: P(named) at its cell against every other landmark's cell
+    p_named_map = positive_probability(maps.relevance_map_w, heads.grounding_w, heads.grounding_b)
+    p_named = float(p_named_map[r, c])
+    others = [(float(p_named_map[cell_of(lm.x, lm.y, F, n)]), lm.noun_phrase) for lm in world.landmarks
+              if lm.noun_phrase != target.noun_phrase]
+    best_other = max(others, default=None)
+    grounded = p_named > (best_other[0] if best_other else 0.5)
+
+    # goal: would stopping at the peak of P(goal) have succeeded?
+    gr, gc, gp = goal_peak(maps.goal_map_w, heads)
+    gx, gy = cell_centre(gr, gc, F, n)
+    start = (world.start_x, world.start_y)
+    goal_right = math.dist((gx, gy), (target.x, target.y)) < success_radius and \
+        side_of((target.x, target.y), start, (gx, gy)) == instruction.side
+    final_to_peak = math.dist(final_xy, (gx, gy))
+
+    name = target.noun_phrase
+    if success:
+        stage, reason = None, "Success."
+    elif not observed:
+        stage, reason = "perception", f"The camera never covered the {name}'s cell: it was never seen."
+    elif not perceived:
+        stage, reason = "perception", (f"Seen but not recognised: the perception head reads the {name}'s cell as "
+                                       f"{top} (the {name} ranks {rank}, p {probs[target.class_id]:.2f}).")
+    elif not grounded:
+        against = f"{best_other[0]:.2f} at the {best_other[1]}" if best_other else "under 0.5"
+        stage, reason = "grounding", f"Perceived but not grounded: P(named) {p_named:.2f} at the {name}, {against}."
+    elif not goal_right:
+        stage, reason = "goal", (f"Grounded, but the goal map peaks {math.dist((gx, gy), instruction.goal):.1f} m "
+                                 f"from the true goal, where stopping would fail.")
+    else:
+        how = f"stopped {final_to_peak:.1f} m from it" if stopped else "never said STOP"
+        stage, reason = "control", f"The goal map was right, but the drone {how}."
+    return Attribution(
+        stage=stage, reason=reason, landmark_row=r, landmark_col=c, observed=observed, perceived=perceived,
+        top_class=top, p_landmark_class=float(probs[target.class_id]), landmark_class_rank=rank, grounded=grounded,
+        p_named=p_named, p_named_other=best_other[0] if best_other else None,
+        other_landmark=best_other[1] if best_other else None, goal_right=goal_right, goal_peak_x=gx, goal_peak_y=gy,
+        goal_peak_p=gp, goal_peak_error=math.dist((gx, gy), instruction.goal), stopped=stopped,
+        final_to_peak=final_to_peak)
+
+
+def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:
+    """How many failures each stage explains (successes and episodes without maps are not counted)."""
+    counts = dict.fromkeys(STAGES, 0)
+    for a in attributions:
+        if a is not None and a.stage is not None:
+            counts[a.stage] += 1
+    return counts
+
+
+# -- recording during evaluation ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelTrace:
+    """What attribution and the failure browser need from one episode of a GSMN: the final maps, and per step
+    the model's own action, P(stop), P(named) at the named landmark's cell and the goal peak."""
+
+    maps: FinalMaps
+    v: np.ndarray  # (T,) m/s, the model's own action
+    omega: np.ndarray  # (T,) rad/s
+    stop_probability: np.ndarray  # (T,)
+    p_named: np.ndarray  # (T,) P(named) at the named landmark's cell
+    goal_peak_rc: np.ndarray  # (T, 2) int, the cell of the highest P(goal)
+    goal_peak_p: np.ndarray  # (T,)
+
+
+class TraceRecorder:
+    """A GSMN policy that keeps a ModelTrace of its episode (evaluation wraps the policy in one)."""
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.name, self.needs_images = policy.name, policy.needs_images
+        self.heads = Heads.of(policy.model)
+        self._rows: list[tuple] = []
+        self._cell = (0, 0)
+        self._last = None
+
+    def reset(self, task) -> None:
+        self.policy.reset(task)
+        lm = task.world.landmarks[task.instruction.landmark_index]
+        self._cell = cell_of(lm.x, lm.y, task.world.field_size, self.policy.model.config.model.map_size)
+        self._rows, self._last = [], None
+
+    def act(self, obs):
+        action = self.policy.act(obs)
+        out = self.policy.last_outputs
+        relevance = out.relevance_map_w[0, 0].float().numpy()
+        goal = out.goal_map_w[0, 0].float().numpy()
+        r, c = self._cell
+        p_named = positive_probability(relevance[:, r:r + 1, c:c + 1], self.heads.grounding_w,
+                                       self.heads.grounding_b)[0, 0]
+        gr, gc, gp = goal_peak(goal, self.heads)
+        drone = self.policy.config.drone
+        self._rows.append((float(out.v[0, 0]) * drone.max_forward_velocity,
+                           float(out.omega[0, 0]) * drone.max_yaw_rate,
+                           float(torch.sigmoid(out.stop_logit[0, 0])), float(p_named), gr, gc, gp))
+        self._last = out
+        return action
+
+    def trace(self) -> ModelTrace:
+        if self._last is None:
+            raise RuntimeError("no step recorded: fly an episode first")
+        out = self._last
+        maps = FinalMaps(*(t[0, 0].to(torch.float16).numpy().copy()
+                           for t in (out.semantic_map_w, out.relevance_map_w, out.goal_map_w)))
+        a = np.array([row[:4] + (row[6],) for row in self._rows], np.float32)
+        rc = np.array([row[4:6] for row in self._rows], np.int16)
+        return ModelTrace(maps, v=a[:, 0], omega=a[:, 1], stop_probability=a[:, 2], p_named=a[:, 3],
+                          goal_peak_rc=rc, goal_peak_p=a[:, 4])
+
+
+def save_trace(path: Path | str, trace: ModelTrace) -> None:
+    """Write atomically (a temporary file renamed into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    m = trace.maps
+    np.savez_compressed(tmp, semantic_map_w=m.semantic_map_w.astype(np.float16),
+                        relevance_map_w=m.relevance_map_w.astype(np.float16),
+                        goal_map_w=m.goal_map_w.astype(np.float16), v=trace.v, omega=trace.omega,
+                        stop_probability=trace.stop_probability, p_named=trace.p_named,
+                        goal_peak_rc=trace.goal_peak_rc, goal_peak_p=trace.goal_peak_p)
+    tmp.replace(path)
+
+
+def load_trace(path: Path | str) -> ModelTrace:
+    with np.load(path, allow_pickle=False) as f:
+        d = {k: f[k] for k in f.files}
+    maps = FinalMaps(d.pop("semantic_map_w"), d.pop("relevance_map_w"), d.pop("goal_map_w"))
+    return ModelTrace(maps, **d)
+
+
+def trace_path(folder: Path | str, env_id: int) -> Path:
+    return Path(folder) / f"env_{env_id:06d}.npz"

@@ -1,0 +1,172 @@
+"""Failure attribution (gsmn/attribution.py): each stage on hand-made maps and heads whose readings are known, then
+on a real episode flown by a (untrained) GSMN through `evaluate(..., record_dir=...)`, checked against the
+dashboard's own reading of the same maps."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from gsmn.attribution import (
+    STAGES,
+    FinalMaps,
+    Heads,
+    attribute,
+    cell_centre,
+    cell_of,
+    count_stages,
+    load_trace,
+    save_trace,
+    trace_path,
+)
+from gsmn.config import preset, with_overrides
+from gsmn.task.rollout import task_for_env
+from gsmn.world.landmarks import CATALOGUE
+
+N = 32
+K = len(CATALOGUE)
+TASK = task_for_env(70, preset("tiny"))  # "go to the back side of the pumpkin", start (30, 0)
+WORLD, INSTRUCTION = TASK.world, TASK.instruction
+TARGET = WORLD.landmarks[INSTRUCTION.landmark_index]
+
+
+def heads() -> Heads:
+    """Perception: the semantic map's channel k votes for class k. Grounding: P(named) = sigmoid(relevance
+    channel 0). Goal: P(goal) = sigmoid(goal channel 0)."""
+    return Heads(perception_w=10 * np.eye(K, dtype=np.float32), perception_b=np.zeros(K, np.float32),
+                 grounding_w=np.array([[0, 0, 0], [1, 0, 0]], np.float32), grounding_b=np.zeros(2, np.float32),
+                 goal_w=np.array([[0, 0], [1, 0]], np.float32), goal_b=np.zeros(2, np.float32))
+
+
+def cell(x: float, y: float) -> tuple[int, int]:
+    return cell_of(x, y, WORLD.field_size, N)
+
+
+def maps_where(perceive: str | None = "pumpkin", relevance: dict[str, float] | None = None,
+               goal_xy: tuple[float, float] | None = None) -> FinalMaps:
+    """Every landmark's cell observed and read as itself, except the target, read as `perceive` (None: never
+    observed). Relevance -4 everywhere but the given landmarks; goal map peaked at goal_xy (default: the goal)."""
+    semantic = np.zeros((K, N, N), np.float32)
+    for lm in WORLD.landmarks:
+        semantic[lm.class_id][cell(lm.x, lm.y)] = 1.0
+    r, c = cell(TARGET.x, TARGET.y)
+    semantic[:, r, c] = 0.0
+    if perceive is not None:
+        semantic[next(k for k, m in enumerate(CATALOGUE) if m.noun_phrase == perceive), r, c] = 1.0
+    rel = np.full((3, N, N), -4.0, np.float32)
+    for name, value in (relevance if relevance is not None else {"pumpkin": 3.0}).items():
+        lm = next(lm for lm in WORLD.landmarks if lm.noun_phrase == name)
+        rel[0][cell(lm.x, lm.y)] = value
+    goal = np.full((2, N, N), -5.0, np.float32)
+    goal[0][cell(*(goal_xy or INSTRUCTION.goal))] = 4.0
+    return FinalMaps(semantic, rel, goal)
+
+
+def run(maps: FinalMaps, final=(20.0, 5.0), stopped=True, success=False, world=WORLD, instruction=INSTRUCTION):
+    return attribute(maps, heads(), world, instruction, final, stopped, success)
+
+
+def test_a_landmark_never_seen_is_a_perception_failure():
+    a = run(maps_where(perceive=None))
+    assert a.stage == "perception" and not a.observed and not a.perceived and a.top_class is None
+    assert "never" in a.reason
+    assert (a.landmark_row, a.landmark_col) == cell(TARGET.x, TARGET.y)
+
+
+def test_a_landmark_seen_as_another_is_a_perception_failure():
+    a = run(maps_where(perceive="car"))
+    assert a.stage == "perception" and a.observed and not a.perceived and a.top_class == "car"
+    assert a.landmark_class_rank > 1 and "car" in a.reason
+
+
+def test_a_model_of_the_same_name_counts_as_perceived():
+    world = dataclasses.replace(WORLD, landmarks=tuple(
+        dataclasses.replace(lm, noun_phrase="palm tree", class_id=3) if i == INSTRUCTION.landmark_index else lm
+        for i, lm in enumerate(WORLD.landmarks)))
+    instruction = dataclasses.replace(INSTRUCTION, noun_phrase="palm tree",
+                                      text="go to the back side of the palm tree")
+    semantic = maps_where(perceive=None).semantic_map_w.copy()
+    semantic[4][cell(TARGET.x, TARGET.y)] = 1.0  # read as palm_tree_2, the target is palm_tree_1
+    maps = FinalMaps(semantic, maps_where().relevance_map_w, maps_where().goal_map_w)
+    a = run(maps, world=world, instruction=instruction)
+    assert a.perceived and a.top_class == "palm tree" and a.landmark_class_rank == 2
+
+
+def test_relevance_higher_at_another_landmark_is_a_grounding_failure():
+    a = run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5}))
+    assert a.stage == "grounding" and a.perceived and not a.grounded
+    assert a.other_landmark == "globe" and a.p_named_other > a.p_named
+    assert a.p_named == pytest.approx(1 / (1 + np.exp(-1.0)), abs=1e-5)
+    assert "globe" in a.reason
+
+
+def test_landmarks_sharing_the_name_do_not_compete_in_grounding():
+    twin = dataclasses.replace(WORLD.landmarks[7], noun_phrase="pumpkin", class_id=TARGET.class_id)  # the globe
+    world = dataclasses.replace(WORLD, landmarks=WORLD.landmarks[:7] + (twin,))
+    a = run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5}), world=world,
+            instruction=dataclasses.replace(INSTRUCTION, ambiguous=True))
+    assert a.grounded and a.other_landmark != "pumpkin"
+
+
+def test_a_goal_map_peaking_on_the_wrong_side_is_a_goal_failure():
+    front = (TARGET.x + 3.0, TARGET.y - 3.0)  # between the start (30, 0) and the pumpkin
+    a = run(maps_where(goal_xy=front))
+    assert a.stage == "goal" and a.perceived and a.grounded and not a.goal_right
+    px, py = cell_centre(*cell(*front), WORLD.field_size, N)
+    assert (a.goal_peak_x, a.goal_peak_y) == (px, py)
+    assert a.goal_peak_error == pytest.approx(np.hypot(px - INSTRUCTION.goal_x, py - INSTRUCTION.goal_y))
+
+
+def test_a_right_goal_map_and_a_wrong_end_is_a_control_failure():
+    a = run(maps_where(), final=(25.0, 5.0), stopped=True)
+    assert a.stage == "control" and a.goal_right and a.goal_peak_error < 1.0
+    assert a.final_to_peak > 15 and "stopped" in a.reason
+    b = run(maps_where(), final=(25.0, 5.0), stopped=False)
+    assert b.stage == "control" and "never said STOP" in b.reason
+
+
+def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
+    ok = run(maps_where(), final=tuple(INSTRUCTION.goal), success=True)
+    assert ok.stage is None and ok.goal_right and ok.final_to_peak < 1.0
+    stages = [run(maps_where(perceive=None)), run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})),
+              run(maps_where()), ok, None]
+    assert count_stages(stages) == {"perception": 1, "grounding": 1, "goal": 0, "control": 1}
+    assert type(ok).from_dict(json.loads(json.dumps(ok.to_dict()))) == ok
+
+
+def test_a_real_episode_trace_and_its_attribution(tmp_path):
+    """An untrained GSMN flies env 70 through evaluate(); its recorded trace is what the model held, and the
+    attribution reads the maps as the dashboard's layers do."""
+    from app.fixtures import make_untrained_checkpoint
+    from app.layers import MapHeads, inspect_cell
+    from gsmn.evaluation import evaluate
+    from gsmn.model.checkpoint import load_checkpoint
+
+    config = with_overrides(preset("tiny"), {"task.horizon": "25"})
+    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    [record] = evaluate("gsmn", [70], config, folder, record_dir=tmp_path / "rec")
+    trace = load_trace(trace_path(tmp_path / "rec", 70))
+    T = record.steps + 1  # observations, the last one included
+    assert trace.stop_probability.shape == (T,) and trace.goal_peak_rc.shape == (T, 2)
+    assert trace.maps.semantic_map_w.shape == (32, 32, 32) and trace.maps.semantic_map_w.dtype == np.float16
+    assert np.allclose(trace.v, [a[0] for a in record.actions], atol=1e-4)  # the model flew: its actions
+
+    model, *_ = load_checkpoint(folder)
+    a = attribute(trace.maps, Heads.of(model), WORLD, INSTRUCTION, (record.final_x, record.final_y),
+                  record.stopped, record.success)
+    assert record.success is False and a.stage in STAGES
+    assert a.p_named == pytest.approx(float(trace.p_named[-1]), abs=2e-3)  # float16 maps vs float32 steps
+    assert (cell(a.goal_peak_x, a.goal_peak_y) == tuple(trace.goal_peak_rc[-1])) or \
+        a.goal_peak_p == pytest.approx(float(trace.goal_peak_p[-1]), abs=2e-3)  # a tie may pick another cell
+    report = inspect_cell(TARGET.x, TARGET.y, trace.maps.semantic_map_w, trace.maps.relevance_map_w,
+                          trace.maps.goal_map_w, MapHeads.of(model), WORLD)
+    assert report.p_named == pytest.approx(a.p_named, abs=1e-5) and report.observed == a.observed
+    if a.observed:
+        assert report.classes[0][0] == a.top_class
+
+    save_trace(tmp_path / "copy.npz", trace)
+    again = load_trace(tmp_path / "copy.npz")
+    assert np.array_equal(again.maps.goal_map_w, trace.maps.goal_map_w) and np.array_equal(again.v, trace.v)
