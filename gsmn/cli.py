@@ -96,6 +96,43 @@ def _progress(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="episode", file=sys.stderr, dynamic_ncols=True)
 
 
+class _TrainingBars:
+    """Progress bars for `gsmn train`: one per epoch (or DAgger iteration) and phase, from the progress dicts
+    the training loops report."""
+
+    def __init__(self):
+        self.bar, self.key = None, None
+
+    def __call__(self, p: dict) -> None:
+        from tqdm import tqdm
+
+        phase = p.get("phase")
+        if phase not in ("train", "collect"):
+            return
+        if "iteration" in p:
+            where = f"iteration {p['iteration']}/{p['iterations']}"
+        else:
+            where = f"epoch {p.get('epoch')}/{p.get('epochs')}"
+        key = (phase, where)
+        total, done = (p["batches"], p["batch"]) if phase == "train" else (p["rollouts"], p["done"])
+        if key != self.key:
+            self.close()
+            unit = "batch" if phase == "train" else "rollout"
+            what = "training" if phase == "train" else f"rollouts (beta {p.get('beta')})"
+            desc = f"{where} {what}"
+            self.bar = tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True)
+            self.key = key
+        self.bar.n = done
+        if phase == "train" and p.get("loss") is not None:
+            self.bar.set_postfix(loss=f"{p['loss']:.3f}", refresh=False)
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        self.bar, self.key = None, None
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     import time
 
@@ -179,9 +216,14 @@ def cmd_train_supervised(args: argparse.Namespace) -> int:
         path = getattr(args, name)
         if path and not Path(path).is_dir():
             raise FileNotFoundError(f"--{name} {path} does not exist; make it with `gsmn collect --out {path}`")
-    checkpoint = train_supervised(Path(args.run), args.kind, config, EpisodeStore(args.data),
-                                  EpisodeStore(args.dev) if args.dev else None,
-                                  init=Path(args.init) if args.init else None)
+    bars = _TrainingBars()
+    try:
+        checkpoint = train_supervised(Path(args.run), args.kind, config, EpisodeStore(args.data),
+                                      EpisodeStore(args.dev) if args.dev else None,
+                                      init=Path(args.init) if args.init else None, log=_above(bars),
+                                      on_progress=bars)
+    finally:
+        bars.close()
     print(f"checkpoint: {checkpoint}")
     return 0
 
@@ -202,10 +244,25 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
         from gsmn.evaluation import parse_env_ids
 
         env_ids = parse_env_ids(args.env_ids)
-    checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
-                              EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids)
+    bars = _TrainingBars()
+    try:
+        checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
+                                  EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids, log=_above(bars),
+                                  on_progress=bars)
+    finally:
+        bars.close()
     print(f"checkpoint: {checkpoint}")
     return 0
+
+
+def _above(bars: _TrainingBars):
+    """A logger that prints the epoch summary as its own line, below the finished bar."""
+
+    def log(line: str) -> None:
+        bars.close()
+        print(line, flush=True)
+
+    return log
 
 
 # -- gsmn serve ------------------------------------------------------------------------------------
@@ -217,7 +274,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     try:
         dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
-                              api_port=args.api_port, env_id=args.env_id)
+                              api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
+                              max_runs=args.max_runs, max_evaluations=args.max_evaluations)
     except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
         print(f"gsmn serve: error: {e}", file=sys.stderr)
         return 2
@@ -226,6 +284,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
     print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
     print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
+    print(f"data: {dashboard.jobs.describe()}", flush=True)
     try:
         while True:
             time.sleep(1.0)
@@ -308,6 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
     p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
     p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
+    p.add_argument("--data-dir", default="data/dashboard", help="evaluations, fine-tuning runs and their records "
+                   "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
+    p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
+    p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
     add_config_arguments(p)
     p.set_defaults(func=cmd_serve)
     return parser

@@ -18,7 +18,7 @@ from gsmn.config import preset, with_overrides
 from gsmn.model.checkpoint import load_checkpoint
 from gsmn.training.collect import collect_expert
 from gsmn.training.dagger import train_dagger
-from gsmn.training.run import RunError, RunFolder
+from gsmn.training.run import RunError, RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import train_supervised
 
@@ -38,8 +38,12 @@ def stores(tmp_path_factory) -> tuple[EpisodeStore, EpisodeStore]:
 
 def test_tiny_preset_trains_end_to_end_and_its_loss_falls(stores, tmp_path):
     train, dev = stores
-    lines = []
-    checkpoint = train_supervised(tmp_path / "run", "gsmn", CONFIG, train, dev, log=lines.append)
+    lines, reports = [], []
+    checkpoint = train_supervised(tmp_path / "run", "gsmn", CONFIG, train, dev, log=lines.append,
+                                  on_progress=reports.append)
+    # One progress report per batch (4 episodes in batches of 2), the last of each epoch complete.
+    assert [(r["epoch"], r["batch"], r["batches"]) for r in reports] == [(e, b, 2) for e in (1, 2, 3) for b in (1, 2)]
+    assert RunFolder(tmp_path / "run").read_progress()["phase"] == "done"
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in log] == [1, 2, 3] and len(lines) == 3
     assert log[-1]["train"]["loss"] < log[0]["train"]["loss"]
@@ -106,7 +110,13 @@ def supervised_checkpoint(stores, tmp_path_factory) -> Path:
 
 def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, supervised_checkpoint, tmp_path):
     train, dev = stores
-    checkpoint = train_dagger(tmp_path / "dagger", supervised_checkpoint, DAGGER, train, dev, log=lambda s: None)
+    reports = []
+    checkpoint = train_dagger(tmp_path / "dagger", supervised_checkpoint, DAGGER, train, dev, log=lambda s: None,
+                              on_progress=reports.append)
+    collected = [(r["iteration"], r["done"]) for r in reports if r["phase"] == "collect"]
+    assert collected == [(1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    assert {r["iteration"] for r in reports if r["phase"] == "train"} == {1, 2}
+    assert reports[-1] == {"phase": "done", "iteration": 2, "iterations": 2}
     log = [json.loads(line) for line in (tmp_path / "dagger" / "log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2]
     assert [r["beta"] for r in log] == [0.5, 0.25]
@@ -131,3 +141,15 @@ def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervis
     parts = train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None)
     a, b = load_file(whole / "weights.safetensors"), load_file(parts / "weights.safetensors")
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_state_killed_between_its_two_renames_is_recovered(tmp_path):
+    run = RunFolder(tmp_path / "run")
+    model = torch.nn.Linear(2, 2)
+    optimizer = torch.optim.Adam(model.parameters())
+    run.start(CONFIG)
+    run.save_state(model, optimizer, TrainState(epoch=1, step=7))
+    run.state_dir.rename(run.root / "state.old")  # as if killed after the first rename, before the second
+    assert run.has_state()
+    state = run.load_state(torch.nn.Linear(2, 2), torch.optim.Adam(model.parameters()))
+    assert (state.epoch, state.step) == (1, 7) and (run.state_dir / "state.json").is_file()

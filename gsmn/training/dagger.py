@@ -33,7 +33,7 @@ from gsmn.task.rollout import task_for_env
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
-from gsmn.training.supervised import Logger, finish_epoch, make_model_and_optimizer, run_epoch
+from gsmn.training.supervised import Logger, Progress, finish_epoch, make_model_and_optimizer, run_epoch
 from gsmn.world.env import Env
 
 
@@ -74,7 +74,7 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
 # -- the algorithm ----------------------------------------------------------------------------------
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
-                 stop_after: Callable[[TrainState], bool] | None = None) -> Path:
+                 stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None) -> Path:
     """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
 
     Rollouts are drawn from `env_ids` (default: the environments of the expert store)."""
@@ -122,16 +122,22 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                     dataset.delete(key)
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
                 todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
+                n_jobs = len(state.extra["jobs"])
+                collect = {"phase": "collect", "iteration": i, "iterations": dc.iterations, "beta": round(beta, 4),
+                           "rollouts": n_jobs}
+                _report(run, on_progress, {**collect, "done": n_jobs - len(todo)}, force=True)
                 if todo:
                     pool = pool or _make_pool(config, dataset, run.root / "policy")
-                    for _ in pool.map(_rollout_one, todo):
-                        pass
+                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                        _report(run, on_progress, {**collect, "done": n_jobs - len(todo) + k})
                 state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"])}
                 run.save_state(model, optimizer, state)
             if state.extra["phase"] == "train":
                 if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
-                                 stop_after):
+                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}):
                     return run.checkpoint_dir
+                _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
+                        force=True)
                 mix = state.extra["mix"]
                 record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
                           "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
@@ -142,7 +148,16 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     finally:
         if pool is not None:
             pool.shutdown()
+    if state.epoch >= dc.iterations:
+        _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
+                force=True)
     return run.checkpoint_dir
+
+
+def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force: bool = False) -> None:
+    run.write_progress(progress, force=force)
+    if on_progress:
+        on_progress(progress)
 
 
 def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> ProcessPoolExecutor:

@@ -7,6 +7,8 @@
                           counters and running sums (JSON). Replaced atomically: a kill at any moment
                           leaves either the previous state or the new one, never half of one.
       checkpoint/         the latest model checkpoint (gsmn.model.checkpoint format)
+      progress.json       where the run is now (phase, epoch or iteration, batch of batches, ...), rewritten
+                          atomically at most once a second; for monitors such as the dashboard
 
 Optimizer state is saved with torch.save and read back with weights_only=True: tensors and plain
 containers only, never code.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +49,7 @@ class TrainState:
 class RunFolder:
     def __init__(self, root: Path | str):
         self.root = Path(root)
+        self._progress_written = 0.0
 
     @property
     def state_dir(self) -> Path:
@@ -91,11 +95,28 @@ class RunFolder:
         shutil.rmtree(old, ignore_errors=True)
 
     def load_state(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> TrainState:
-        if not self.has_state() and (self.root / "state.old" / "state.json").is_file():
+        if not (self.state_dir / "state.json").is_file() and (self.root / "state.old" / "state.json").is_file():
             (self.root / "state.old").rename(self.state_dir)  # killed between the two renames
         model.load_state_dict(load_file(self.state_dir / "weights.safetensors"))
         optimizer.load_state_dict(torch.load(self.state_dir / "optimizer.pt", weights_only=True))
         return TrainState(**json.loads((self.state_dir / "state.json").read_text()))
+
+    @property
+    def progress_path(self) -> Path:
+        return self.root / "progress.json"
+
+    def write_progress(self, progress: dict, force: bool = False) -> None:
+        """Record where the run is; throttled to once a second unless `force`."""
+        now = time.monotonic()
+        if force or now - self._progress_written >= 1.0:
+            _write_atomic(self.progress_path, json.dumps({**progress, "time": time.time()}) + "\n")
+            self._progress_written = now
+
+    def read_progress(self) -> dict | None:
+        try:
+            return json.loads(self.progress_path.read_text())
+        except (OSError, ValueError):
+            return None
 
     def log(self, record: dict) -> None:
         with self.log_path.open("a") as f:

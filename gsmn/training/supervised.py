@@ -27,6 +27,7 @@ from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 
 Logger = Callable[[str], None]
+Progress = Callable[[dict], None]  # called with the same dict the run folder's progress.json records
 
 
 def batch_seed(seed: int, epoch: int, batch: int) -> int:
@@ -111,12 +112,16 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None
 
 def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
               config: RunConfig, store: EpisodeStore, keys: list[str], state: TrainState, epoch: int,
-              stop_after: Callable[[TrainState], bool] | None = None) -> bool:
+              stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
+              progress: dict | None = None) -> bool:
     """Train on the batches of `epoch` from `state.batch` on, saving state every `save_every_seconds`.
-    Returns False when `stop_after` ended it early (state saved), True when the epoch is done."""
+    Returns False when `stop_after` ended it early (state saved), True when the epoch is done.
+    After each batch, `progress` (e.g. {"phase": "train", "epoch": 3}) plus the batch counters and the batch's
+    loss is written to the run's progress.json (throttled) and passed to `on_progress`."""
     tc = config.train
     batches = epoch_batches(keys, tc.batch_size, tc.seed, epoch)
     last_save = time.monotonic()
+    progress = {"phase": "train", **(progress or {"epoch": epoch + 1})}
     while state.batch < len(batches):
         t0 = time.monotonic()
         samples = [store.read(key) for key in batches[state.batch]]
@@ -126,6 +131,11 @@ def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vo
         state.batch += 1
         state.step += 1
         state.seconds += values["seconds"]
+        now = {**progress, "batch": state.batch, "batches": len(batches), "step": state.step,
+               "loss": values.get("loss"), "frames": values.get("frames")}
+        run.write_progress(now, force=state.batch == len(batches))
+        if on_progress:
+            on_progress(now)
         if time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches):
             run.save_state(model, optimizer, state)
             last_save = time.monotonic()
@@ -150,7 +160,8 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
 
 def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_store: EpisodeStore,
                      dev_store: EpisodeStore | None = None, init: Path | None = None,
-                     log: Logger = print, stop_after: Callable[[TrainState], bool] | None = None) -> Path:
+                     log: Logger = print, stop_after: Callable[[TrainState], bool] | None = None,
+                     on_progress: Progress | None = None) -> Path:
     """Train (or resume training) `kind` on `train_store`; returns the checkpoint folder.
 
     `stop_after(state)` is asked after every saved state and may end the call early (the run stays
@@ -165,11 +176,15 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
     if not keys:
         raise ValueError(f"no episodes in {train_store.root}; collect some with `gsmn collect`")
     while state.epoch < config.train.epochs:
-        if not run_epoch(run, model, optimizer, vocabulary, config, train_store, keys, state, state.epoch, stop_after):
+        if not run_epoch(run, model, optimizer, vocabulary, config, train_store, keys, state, state.epoch, stop_after,
+                         on_progress, {"epoch": state.epoch + 1, "epochs": config.train.epochs}):
             return run.checkpoint_dir
+        run.write_progress({"phase": "validate", "epoch": state.epoch + 1, "epochs": config.train.epochs}, force=True)
         finish_epoch(run, model, optimizer, vocabulary, config, state, {"epoch": state.epoch + 1}, dev_store, log)
         if stop_after and stop_after(state):
             break
+    if state.epoch >= config.train.epochs:
+        run.write_progress({"phase": "done", "epoch": state.epoch, "epochs": config.train.epochs}, force=True)
     return run.checkpoint_dir
 
 
