@@ -18,6 +18,7 @@ import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,6 +122,7 @@ class Runner:
         self.episodes = EpisodeStore(max_episodes)
         self.listeners: list[RunnerListener] = []
         self.models: dict[str, LoadedModel] = {}  # by resolved path
+        self.extra_checkpoints: Callable[[], dict[str, Path]] | None = None  # e.g. fine-tuning runs', by name
         self.default_model: str | None = None  # key into self.models
         self.checkpoint_message = ""
         self.speed: float | None = None
@@ -177,8 +179,12 @@ class Runner:
             path = self._path_of(self.default_ref)
             if path.is_dir():
                 found[self.default_ref] = path
+        for name, path in (self.extra_checkpoints() if self.extra_checkpoints else {}).items():
+            found.setdefault(name, path)
+        known = {p.resolve() for p in found.values()}
         for m in self.models.values():
-            found.setdefault(m.name, m.path)
+            if m.path.resolve() not in known:
+                found.setdefault(m.name, m.path)
         default_key = self.default_model
         out = []
         for name, path in found.items():
@@ -259,7 +265,11 @@ class Runner:
 
     # -- checkpoints ------------------------------------------------------------------------------------------
     def _path_of(self, ref: str) -> Path:
-        """A bare name is a folder under checkpoints_root (unless only ./name is a checkpoint); else a path."""
+        """A bare name is a folder under checkpoints_root (unless only ./name is a checkpoint) or an extra
+        checkpoint's name; else a path."""
+        extra = self.extra_checkpoints() if self.extra_checkpoints else {}
+        if ref in extra and not (self.checkpoints_root / ref).is_dir():
+            return extra[ref]
         candidate = self.checkpoints_root / ref
         if "/" not in ref and (candidate.is_dir() or not (Path(ref) / "meta.json").is_file()):
             return candidate
