@@ -1,0 +1,80 @@
+"""Plot the development-set accuracy curves of supervised training runs (the paper's Figure 4).
+
+    .venv/bin/pip install -e .[docs]       # matplotlib
+    .venv/bin/python scripts/plot_curves.py runs/gsmn_sup runs/gsmn_sup_b1 --label GSMN --out docs/accuracy_curves.png
+
+Each argument group is one panel: the run folders listed before a `--label` are read in order and their epochs
+concatenated (a run continued from another's checkpoint in a new folder counts on from where it left off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+CURVES = [("acc_perception", "Perception", "tab:red"), ("acc_grounding", "Grounding", "tab:blue"),
+          ("acc_goal", "Planning (goal)", "tab:brown"), ("acc_instruction_landmark", "Instruction: landmark",
+                                                         "tab:purple"),
+          ("acc_instruction_side", "Instruction: side", "tab:green")]
+
+
+def read_runs(folders: list[Path]) -> list[dict]:
+    records = []
+    for folder in folders:
+        for line in (folder / "log.jsonl").read_text().splitlines():
+            if line.strip():
+                record = json.loads(line)
+                if "dev" in record:
+                    records.append(record["dev"])
+    return records
+
+
+def parse_panels(argv: list[str]) -> tuple[list[tuple[str, list[Path]]], Path]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("docs/accuracy_curves.png"))
+    args, rest = parser.parse_known_args(argv)
+    panels, folders = [], []
+    it = iter(rest)
+    for token in it:
+        if token == "--label":
+            panels.append((next(it), folders))
+            folders = []
+        else:
+            folders.append(Path(token))
+    if folders:
+        panels.append(("", folders))
+    if not panels:
+        parser.error("name at least one run folder")
+    return panels, args.out
+
+
+def main(argv: list[str] | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels, out = parse_panels(argv)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.6), squeeze=False, sharey=True)
+    for ax, (label, folders) in zip(axes[0], panels, strict=True):
+        records = read_runs(folders)
+        epochs = list(range(1, len(records) + 1))
+        for key, name, colour in CURVES:
+            values = [r[key] for r in records if key in r]
+            if values and (key != "acc_goal" or any(values)):
+                ax.plot(epochs[: len(values)], values, marker="o", color=colour, label=name)
+        ax.plot(epochs, [r["loss_action"] for r in records], marker="s", ls="--", color="black",
+                label="action loss (dev)")
+        ax.set(title=label, xlabel="Epoch", ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
+        ax.grid(axis="y", ls="--", alpha=0.6)
+    axes[0][0].set_ylabel("Dev accuracy")
+    axes[0][-1].legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
