@@ -168,11 +168,14 @@ def summary(e: Episode) -> EpisodeSummary:
                           error=e.error)
 
 
-def make_api(runner: Runner, viewer_url: str | None = None) -> FastAPI:
+def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAPI:
+    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs."""
     app = FastAPI(title="GSMN dashboard API", version="1.0",
                   description="Fly instructions with GSMN (Blukis et al., RSS 2018) on the MuJoCo quadcopter, read "
                               "episodes step by step, and ground counterfactual instructions on a semantic map "
-                              "already built. The browser view runs on the viser port.")
+                              "already built. Evaluate checkpoints, browse failures with their attribution, and "
+                              "fine-tune with DAggerFM in separate processes. The browser view runs on the viser "
+                              "port.")
 
     @app.exception_handler(RunnerError)
     def runner_error(request: Request, e: RunnerError) -> JSONResponse:
@@ -190,6 +193,11 @@ def make_api(runner: Runner, viewer_url: str | None = None) -> FastAPI:
             parts.append(f"{where}: {err.get('msg')}" if where else str(err.get("msg")))
         return JSONResponse({"detail": "; ".join(parts) or "invalid request", "errors": _plain(e.errors())},
                             status_code=422)
+
+    if jobs is not None:
+        from app.jobs_api import add_job_routes
+
+        add_job_routes(app, jobs, runner)
 
     def episode_or_404(episode_id: int) -> Episode:
         episode = runner.episodes.get(episode_id)

@@ -18,12 +18,14 @@ import uvicorn
 import viser
 
 from app.api import make_api
-from app.commands import ShowEnv
+from app.commands import Conflict, RunnerError, ShowEnv
+from app.jobs import JobManager
 from app.runner import Runner
 from app.viewer import Viewer
 from gsmn.config import RunConfig
 
 DEFAULT_CHECKPOINT = "gsmn"  # checkpoints/gsmn
+DEFAULT_DATA_DIR = "data/dashboard"
 CHECKPOINTS_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
 
 
@@ -93,11 +95,12 @@ class Urls:
 
 class Dashboard:
     """The whole dashboard in this process. `checkpoint` None means the default (checkpoints/gsmn, optional);
-    a path given explicitly must load."""
+    a path given explicitly must load. Evaluations and fine-tuning runs are recorded under `data_dir`."""
 
     def __init__(self, config: RunConfig, checkpoint: str | Path | None = None, host: str = "127.0.0.1",
                  port: int = 8080, api_port: int = 8000, env_id: int = 70,
-                 checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1):
+                 checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1,
+                 data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1):
         import torch
 
         # One thread: the runner does one small step at a time, and on a busy machine two threads spin
@@ -106,18 +109,34 @@ class Dashboard:
         self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
                              require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
                              max_episodes=max_episodes).start()
+        self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
+                               max_evaluations=max_evaluations)
+        self.runner.extra_checkpoints = self.jobs.checkpoints
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when not verbose
             self.viser = viser.ViserServer(host=host, port=port, verbose=False, label="GSMN dashboard")
         self.viewer = Viewer(self.viser, self.runner, env_id)
         page_url = _url(host, self.viser.get_port())
-        self.api = ApiServer(make_api(self.runner, page_url), host, api_port)
+        self.api = ApiServer(make_api(self.runner, page_url, self.jobs), host, api_port)
         self.api.wait_started()
         self.urls = Urls(page_url, self.api.url, self.api.moved)
         self.runner.call(ShowEnv(env_id))
 
+    def resolve_checkpoint(self, ref: str | None) -> Path:
+        """A checkpoint name (under checkpoints/, or run-N) or folder; None: the default one."""
+        if ref is None:
+            if self.runner.default_model is None:
+                raise Conflict(f"no default checkpoint: {self.runner.checkpoint_message} Name one.")
+            return Path(self.runner.default_model)
+        path = self.runner._path_of(ref)
+        if not (path / "meta.json").is_file():
+            raise RunnerError(f"no checkpoint at {path}")
+        return path.resolve()
+
     def close(self) -> None:
+        """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
         self.viewer.close()
+        self.jobs.close()
         self.runner.close()
         with contextlib.redirect_stdout(io.StringIO()):
             self.viser.stop()

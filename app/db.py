@@ -1,0 +1,310 @@
+"""The dashboard's record of evaluations, their episodes and fine-tuning runs: one SQLite file (standard library
+sqlite3, WAL mode) in the data folder, `gsmn.sqlite`, beside one folder per job with its recordings.
+
+Rows are read back as typed records (`Evaluation`, `EpisodeRow`, `Run`); JSON columns are decoded here, so no
+caller sees raw SQL rows. One connection is shared by the server's threads behind a lock: every write is a single
+statement, so a server killed at any moment leaves either the old row or the new one. Status values:
+queued, running, finished, failed, cancelled.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
+ACTIVE = (QUEUED, RUNNING)
+STATUSES = (QUEUED, RUNNING, FINISHED, FAILED, CANCELLED)
+SCHEMA_VERSION = 1
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS evaluations (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    status TEXT NOT NULL,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    system TEXT NOT NULL,
+    checkpoint TEXT,
+    env_ids TEXT NOT NULL,          -- JSON list, in the order flown
+    label TEXT NOT NULL,
+    baseline_id INTEGER,            -- the evaluation whose episodes this one reruns (before/after)
+    run_id INTEGER,                 -- the fine-tuning run whose checkpoint this evaluates
+    source TEXT NOT NULL,           -- 'dashboard' or 'import'
+    folder TEXT,
+    pid INTEGER,
+    command TEXT,                   -- JSON list
+    done INTEGER NOT NULL DEFAULT 0,
+    total INTEGER NOT NULL,
+    summary TEXT,                   -- JSON: gsmn.task.metrics.Summary.to_dict()
+    error TEXT,
+    cancel_requested INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS episodes (
+    evaluation_id INTEGER NOT NULL REFERENCES evaluations(id),
+    position INTEGER NOT NULL,
+    env_id INTEGER NOT NULL,
+    instruction TEXT NOT NULL,
+    landmark TEXT NOT NULL,
+    side TEXT NOT NULL,
+    ambiguous INTEGER NOT NULL,
+    success INTEGER NOT NULL,
+    landmark_success INTEGER NOT NULL,
+    goal_distance REAL NOT NULL,
+    steps INTEGER NOT NULL,
+    stopped INTEGER NOT NULL,
+    final_x REAL NOT NULL,
+    final_y REAL NOT NULL,
+    stage TEXT,                     -- attribution stage of a failure (NULL: success, or no maps recorded)
+    attribution TEXT,               -- JSON: gsmn.attribution.Attribution.to_dict()
+    recording TEXT,                 -- the episode's ModelTrace (.npz), when recorded
+    PRIMARY KEY (evaluation_id, env_id)
+);
+CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    status TEXT NOT NULL,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    settings TEXT NOT NULL,         -- JSON: app.jobs.RunSettings
+    env_ids TEXT,                   -- JSON list, or NULL for the train split
+    source_evaluation_id INTEGER,   -- the evaluation whose failures it trains on
+    init_checkpoint TEXT NOT NULL,
+    folder TEXT NOT NULL,
+    pid INTEGER,
+    command TEXT,
+    progress TEXT,                  -- JSON: where the run is now
+    metrics TEXT,                   -- JSON list: one record per finished iteration (the run's log.jsonl)
+    checkpoint TEXT,
+    error TEXT,
+    cancel_requested INTEGER NOT NULL DEFAULT 0
+);
+CREATE INDEX IF NOT EXISTS episodes_by_evaluation ON episodes (evaluation_id, position);
+"""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    id: int
+    status: str
+    created: float
+    started: float | None
+    finished: float | None
+    system: str
+    checkpoint: str | None
+    env_ids: list[int]
+    label: str
+    baseline_id: int | None
+    run_id: int | None
+    source: str
+    folder: str | None
+    pid: int | None
+    command: list[str] | None
+    done: int
+    total: int
+    summary: dict | None
+    error: str | None
+    cancel_requested: bool
+
+
+@dataclass(frozen=True)
+class EpisodeRow:
+    evaluation_id: int
+    position: int
+    env_id: int
+    instruction: str
+    landmark: str
+    side: str
+    ambiguous: bool
+    success: bool
+    landmark_success: bool
+    goal_distance: float
+    steps: int
+    stopped: bool
+    final_x: float
+    final_y: float
+    stage: str | None
+    attribution: dict | None
+    recording: str | None
+
+
+@dataclass(frozen=True)
+class Run:
+    id: int
+    status: str
+    created: float
+    started: float | None
+    finished: float | None
+    settings: dict
+    env_ids: list[int] | None
+    source_evaluation_id: int | None
+    init_checkpoint: str
+    folder: str
+    pid: int | None
+    command: list[str] | None
+    progress: dict | None
+    metrics: list[dict]
+    checkpoint: str | None
+    error: str | None
+    cancel_requested: bool
+
+
+_JSON = {"env_ids", "command", "summary", "attribution", "settings", "progress", "metrics"}
+_BOOL = {"ambiguous", "success", "landmark_success", "stopped", "cancel_requested"}
+
+
+def _decode(cls: type, row: sqlite3.Row) -> Any:
+    values = {}
+    for f in fields(cls):
+        v = row[f.name]
+        if f.name in _JSON and v is not None:
+            v = json.loads(v)
+        elif f.name in _BOOL:
+            v = bool(v)
+        values[f.name] = v
+    if cls is Run and values["metrics"] is None:
+        values["metrics"] = []
+    return cls(**values)
+
+
+def _encode(name: str, value: Any) -> Any:
+    if name in _JSON and value is not None:
+        return json.dumps(value)
+    if name in _BOOL:
+        return int(bool(value))
+    return value
+
+
+class Database:
+    """The record in `path` (created with its schema when missing)."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
+        self._db.row_factory = sqlite3.Row
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise RuntimeError(f"{self.path} was written by a newer version (schema {version}); use another "
+                               "--data-dir")
+        self._db.executescript(SCHEMA)
+        self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def _execute(self, sql: str, params: tuple | dict = ()) -> sqlite3.Cursor:
+        with self._lock:
+            return self._db.execute(sql, params)
+
+    def _all(self, sql: str, params: tuple | dict = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            return self._db.execute(sql, params).fetchall()
+
+    def _insert(self, table: str, values: dict[str, Any], replace: bool = False) -> int:
+        names = list(values)
+        sql = (f"INSERT {'OR REPLACE ' if replace else ''}INTO {table} ({', '.join(names)}) "
+               f"VALUES ({', '.join('?' for _ in names)})")
+        return int(self._execute(sql, tuple(_encode(k, values[k]) for k in names)).lastrowid)
+
+    def _update(self, table: str, row_id: int, values: dict[str, Any]) -> None:
+        allowed = {f.name for f in fields(Evaluation if table == "evaluations" else Run)} - {"id"}
+        unknown = set(values) - allowed
+        if unknown:
+            raise ValueError(f"no such {table} column(s): {sorted(unknown)}")
+        sets = ", ".join(f"{k} = ?" for k in values)
+        self._execute(f"UPDATE {table} SET {sets} WHERE id = ?",
+                      (*(_encode(k, v) for k, v in values.items()), row_id))
+
+    # -- evaluations -------------------------------------------------------------------------------------------
+    def add_evaluation(self, *, system: str, checkpoint: str | None, env_ids: list[int], label: str,
+                       source: str = "dashboard", status: str = QUEUED, baseline_id: int | None = None,
+                       run_id: int | None = None) -> int:
+        return self._insert("evaluations", {
+            "status": status, "created": time.time(), "system": system, "checkpoint": checkpoint,
+            "env_ids": [int(e) for e in env_ids], "label": label, "baseline_id": baseline_id, "run_id": run_id,
+            "source": source, "total": len(env_ids)})
+
+    def update_evaluation(self, evaluation_id: int, **values: Any) -> None:
+        self._update("evaluations", evaluation_id, values)
+
+    def evaluation(self, evaluation_id: int) -> Evaluation | None:
+        rows = self._all("SELECT * FROM evaluations WHERE id = ?", (evaluation_id,))
+        return _decode(Evaluation, rows[0]) if rows else None
+
+    def evaluations(self, statuses: tuple[str, ...] | None = None) -> list[Evaluation]:
+        if statuses:
+            rows = self._all(f"SELECT * FROM evaluations WHERE status IN ({','.join('?' * len(statuses))}) "
+                             "ORDER BY id", statuses)
+        else:
+            rows = self._all("SELECT * FROM evaluations ORDER BY id")
+        return [_decode(Evaluation, r) for r in rows]
+
+    # -- episodes ----------------------------------------------------------------------------------------------
+    def add_episode(self, episode: EpisodeRow) -> None:
+        """Insert or replace (a monitor re-reading a progress file after a restart writes the same rows)."""
+        self._insert("episodes", {f.name: getattr(episode, f.name) for f in fields(EpisodeRow)}, replace=True)
+
+    def episodes(self, evaluation_id: int, failed_only: bool = False, landmark: str | None = None,
+                 side: str | None = None, ambiguous: bool | None = None, stage: str | None = None
+                 ) -> list[EpisodeRow]:
+        """The episodes of an evaluation in the order flown, filtered."""
+        where, params = ["evaluation_id = ?"], [evaluation_id]
+        if failed_only:
+            where.append("success = 0")
+        if landmark is not None:
+            where.append("landmark = ?")
+            params.append(landmark)
+        if side is not None:
+            where.append("side = ?")
+            params.append(side)
+        if ambiguous is not None:
+            where.append("ambiguous = ?")
+            params.append(int(ambiguous))
+        if stage is not None:
+            where.append("stage = ?")
+            params.append(stage)
+        rows = self._all(f"SELECT * FROM episodes WHERE {' AND '.join(where)} ORDER BY position", tuple(params))
+        return [_decode(EpisodeRow, r) for r in rows]
+
+    def episode(self, evaluation_id: int, env_id: int) -> EpisodeRow | None:
+        rows = self._all("SELECT * FROM episodes WHERE evaluation_id = ? AND env_id = ?", (evaluation_id, env_id))
+        return _decode(EpisodeRow, rows[0]) if rows else None
+
+    def stage_counts(self, evaluation_id: int) -> dict[str, int]:
+        """Failures per attribution stage; failures without maps count under "unattributed"."""
+        rows = self._all("SELECT coalesce(stage, 'unattributed') AS s, count(*) AS n FROM episodes "
+                         "WHERE evaluation_id = ? AND success = 0 GROUP BY s", (evaluation_id,))
+        return {r["s"]: r["n"] for r in rows}
+
+    # -- runs --------------------------------------------------------------------------------------------------
+    def add_run(self, *, settings: dict, env_ids: list[int] | None, init_checkpoint: str, folder: str,
+                source_evaluation_id: int | None = None, status: str = QUEUED) -> int:
+        return self._insert("runs", {
+            "status": status, "created": time.time(), "settings": settings,
+            "env_ids": [int(e) for e in env_ids] if env_ids is not None else None,
+            "source_evaluation_id": source_evaluation_id, "init_checkpoint": init_checkpoint, "folder": folder})
+
+    def update_run(self, run_id: int, **values: Any) -> None:
+        self._update("runs", run_id, values)
+
+    def run(self, run_id: int) -> Run | None:
+        rows = self._all("SELECT * FROM runs WHERE id = ?", (run_id,))
+        return _decode(Run, rows[0]) if rows else None
+
+    def runs(self, statuses: tuple[str, ...] | None = None) -> list[Run]:
+        if statuses:
+            rows = self._all(f"SELECT * FROM runs WHERE status IN ({','.join('?' * len(statuses))}) ORDER BY id",
+                             statuses)
+        else:
+            rows = self._all("SELECT * FROM runs ORDER BY id")
+        return [_decode(Run, r) for r in rows]

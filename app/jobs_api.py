@@ -1,0 +1,253 @@
+"""HTTP routes for evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
+(`app.jobs`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
+unknown ids, 409 when a limit is reached or there is nothing to cancel, 422 for bad input."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from fastapi import FastAPI
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.commands import NotFound, RunnerError, StartEpisode
+from app.db import EpisodeRow, Evaluation, Run
+from app.jobs import JobManager, run_settings
+from app.runner import Runner
+
+COMMAND_TIMEOUT = 60.0
+SYSTEMS = Literal["gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem", "oracle"]
+STATUS = Literal["queued", "running", "finished", "failed", "cancelled"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class EvaluationRequest(_Strict):
+    checkpoint: str | None = Field(None, description="checkpoint name (under checkpoints/, or run-N for a "
+                                   "fine-tuning run) or folder; omitted: the server's default")
+    system: SYSTEMS | None = Field(None, description="omitted: the checkpoint's kind; 'oracle' flies the expert")
+    split: Literal["train", "test", "dev"] | None = Field(None, description="evaluate on this split ...")
+    episodes: int | None = Field(None, ge=1, le=5000, description="... its first this many environments")
+    env_ids: list[int] | None = Field(None, min_length=1, max_length=5000, description="or these environment ids")
+    baseline_id: int | None = Field(None, ge=1, description="rerun the episodes of this evaluation (before/after); "
+                                    "also the default environments")
+    run_id: int | None = Field(None, ge=1, description="evaluate this finished fine-tuning run's checkpoint")
+
+
+class ImportRequest(_Strict):
+    path: str = Field(..., description="a `gsmn eval --json` file")
+    record_dir: str | None = Field(None, description="its `--record` folder, for failure attribution")
+
+
+class ReplayRequest(_Strict):
+    env_id: int = Field(..., ge=0)
+
+
+class EvaluationModel(BaseModel):
+    id: int
+    status: STATUS
+    label: str
+    system: str
+    checkpoint: str | None
+    env_ids: list[int]
+    baseline_id: int | None
+    run_id: int | None
+    source: Literal["dashboard", "import"]
+    done: int = Field(description="episodes finished")
+    total: int
+    fraction: float
+    summary: dict | None = Field(description="success %, landmark success %, mean and median distance (m); "
+                                 "'pruned': the same on unambiguous instructions; of the episodes done so far")
+    stages: dict[str, int] = Field(description="failures per attribution stage")
+    error: str | None
+    created: float
+    started: float | None
+    finished: float | None
+
+
+class EpisodeModel(BaseModel):
+    evaluation_id: int
+    position: int
+    env_id: int
+    instruction: str
+    landmark: str
+    side: str
+    ambiguous: bool
+    success: bool
+    landmark_success: bool
+    goal_distance: float
+    steps: int
+    stopped: bool
+    final_x: float
+    final_y: float
+    stage: str | None = Field(description="attribution of a failure: perception, grounding, goal or control")
+    attribution: dict | None = Field(description="the evidence (gsmn.attribution.Attribution)")
+
+
+class Replayed(BaseModel):
+    episode_id: int
+    env_id: int
+    policy: str
+    checkpoint: str | None
+
+
+class RunRequest(_Strict):
+    preset: Literal["tiny", "small", "paper"] = Field("tiny", description="tiny: a minute or two on a 2-core "
+                                                      "machine; small: tens of minutes; paper: the original's")
+    iterations: int | None = Field(None, ge=1, le=10000)
+    rollouts_per_iteration: int | None = Field(None, ge=1, le=10000, description="N_D")
+    dataset_size: int | None = Field(None, ge=1, le=100000, description="M")
+    beta0: float | None = Field(None, ge=0, le=1)
+    learning_rate: float | None = Field(None, gt=0, le=1)
+    horizon: int | None = Field(None, ge=1, le=1000, description="steps per rollout")
+    batch_size: int | None = Field(None, ge=1, le=64)
+    workers: int | None = Field(None, ge=1, le=16)
+    threads: int | None = Field(None, ge=1, le=64)
+    expert_data: str | None = Field(None, description="an expert episode store (gsmn collect) to start the dataset "
+                                    "from; omitted: collected in the data folder")
+    checkpoint: str | None = Field(None, description="start from this checkpoint; omitted: the server's default")
+    env_ids: list[int] | None = Field(None, min_length=1, max_length=5000, description="roll out in these")
+    evaluation_id: int | None = Field(None, ge=1, description="roll out in this evaluation's failures (when no "
+                                      "env_ids); neither: the train split")
+
+
+class RunModel(BaseModel):
+    id: int
+    status: STATUS
+    settings: dict
+    env_ids: list[int] | None
+    source_evaluation_id: int | None
+    init_checkpoint: str
+    checkpoint: str | None = Field(description="the fine-tuned checkpoint, once finished (name: run-<id>)")
+    progress: dict | None = Field(description="phase, iteration, iterations, fraction, text")
+    metrics: list[dict] = Field(description="one record per finished iteration (losses, accuracies, beta)")
+    error: str | None
+    folder: str
+    created: float
+    started: float | None
+    finished: float | None
+
+
+def clean(value):
+    """NaN and infinities are not JSON: None instead."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [clean(v) for v in value]
+    return value
+
+
+def evaluation_model(jobs: JobManager, e: Evaluation) -> EvaluationModel:
+    return EvaluationModel(id=e.id, status=e.status, label=e.label, system=e.system, checkpoint=e.checkpoint,
+                           env_ids=e.env_ids, baseline_id=e.baseline_id, run_id=e.run_id, source=e.source,
+                           done=e.done, total=e.total, fraction=e.done / max(1, e.total), summary=clean(e.summary),
+                           stages=jobs.db.stage_counts(e.id), error=e.error, created=e.created, started=e.started,
+                           finished=e.finished)
+
+
+def episode_model(e: EpisodeRow) -> EpisodeModel:
+    return EpisodeModel(**{k: clean(v) for k, v in e.__dict__.items() if k != "recording"})
+
+
+def run_model(r: Run) -> RunModel:
+    return RunModel(id=r.id, status=r.status, settings=r.settings, env_ids=r.env_ids,
+                    source_evaluation_id=r.source_evaluation_id, init_checkpoint=r.init_checkpoint,
+                    checkpoint=r.checkpoint if r.status == "finished" else None, progress=clean(r.progress),
+                    metrics=clean(r.metrics), error=r.error, folder=r.folder, created=r.created, started=r.started,
+                    finished=r.finished)
+
+
+def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
+    # -- evaluations ---------------------------------------------------------------------------------------------
+    @app.post("/api/evaluations", response_model=EvaluationModel, status_code=201,
+              summary="Evaluate a checkpoint on a split or environments, in a separate process")
+    def create_evaluation(request: EvaluationRequest) -> EvaluationModel:
+        checkpoint = request.checkpoint
+        if request.run_id is not None and checkpoint is None:
+            run = jobs.run(request.run_id)
+            if run.status != "finished":
+                raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
+            checkpoint = run.checkpoint
+        e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
+                                  request.baseline_id, request.run_id)
+        return evaluation_model(jobs, e)
+
+    @app.get("/api/evaluations", response_model=list[EvaluationModel], summary="Every evaluation recorded")
+    def list_evaluations() -> list[EvaluationModel]:
+        return [evaluation_model(jobs, e) for e in jobs.db.evaluations()]
+
+    @app.post("/api/evaluations/import", response_model=EvaluationModel, status_code=201,
+              summary="Record the results of `gsmn eval --json` (and its --record folder) as an evaluation")
+    def import_evaluation(request: ImportRequest) -> EvaluationModel:
+        return evaluation_model(jobs, jobs.import_evaluation(request.path, request.record_dir))
+
+    @app.get("/api/evaluations/{evaluation_id}", response_model=EvaluationModel,
+             summary="Status, progress, summary so far and attribution counts")
+    def get_evaluation(evaluation_id: int) -> EvaluationModel:
+        return evaluation_model(jobs, jobs.evaluation(evaluation_id))
+
+    @app.delete("/api/evaluations/{evaluation_id}", response_model=EvaluationModel,
+                summary="Cancel a running evaluation (its process group gets SIGTERM, then SIGKILL)")
+    def cancel_evaluation(evaluation_id: int) -> EvaluationModel:
+        return evaluation_model(jobs, jobs.cancel_evaluation(evaluation_id))
+
+    @app.get("/api/evaluations/{evaluation_id}/episodes", response_model=list[EpisodeModel],
+             summary="Its episodes in the order flown, with attribution; filters as in the failure browser")
+    def list_evaluation_episodes(evaluation_id: int, failed_only: bool = False, landmark: str | None = None,
+                                 side: Literal["left", "right", "front", "back"] | None = None,
+                                 ambiguous: bool | None = None,
+                                 stage: Literal["perception", "grounding", "goal", "control"] | None = None
+                                 ) -> list[EpisodeModel]:
+        jobs.evaluation(evaluation_id)
+        return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
+                                                             stage)]
+
+    @app.post("/api/evaluations/{evaluation_id}/replay", response_model=Replayed, status_code=201,
+              summary="Fly an episode of the evaluation again in the live view, with its maps")
+    def replay(evaluation_id: int, request: ReplayRequest) -> Replayed:
+        e = jobs.evaluation(evaluation_id)
+        if jobs.db.episode(evaluation_id, request.env_id) is None:
+            raise NotFound(f"evaluation {evaluation_id} has no episode in environment {request.env_id}")
+        policy, checkpoint = replay_policy(e)
+        episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint), COMMAND_TIMEOUT)
+        return Replayed(episode_id=episode.id, env_id=request.env_id, policy=policy, checkpoint=checkpoint)
+
+    @app.get("/api/evaluations/{before_id}/compare/{after_id}",
+             summary="Before/after: the episodes two evaluations share, side by side")
+    def compare(before_id: int, after_id: int) -> dict:
+        return clean(jobs.compare(before_id, after_id))
+
+    # -- runs ----------------------------------------------------------------------------------------------------
+    @app.post("/api/runs", response_model=RunModel, status_code=201,
+              summary="Launch DAggerFM fine-tuning from a checkpoint, in a separate process")
+    def create_run(request: RunRequest) -> RunModel:
+        fields = request.model_dump(exclude={"preset", "checkpoint", "env_ids", "evaluation_id"})
+        settings = run_settings(request.preset, **fields)
+        return run_model(jobs.start_run(settings, request.checkpoint, request.env_ids, request.evaluation_id))
+
+    @app.get("/api/runs", response_model=list[RunModel], summary="Every fine-tuning run recorded")
+    def list_runs() -> list[RunModel]:
+        return [run_model(r) for r in jobs.db.runs()]
+
+    @app.get("/api/runs/{run_id}", response_model=RunModel,
+             summary="Status, progress, metrics so far, and the checkpoint when done")
+    def get_run(run_id: int) -> RunModel:
+        return run_model(jobs.run(run_id))
+
+    @app.delete("/api/runs/{run_id}", response_model=RunModel,
+                summary="Cancel a run (SIGTERM, then SIGKILL, to its process group); its folder stays")
+    def cancel_run(run_id: int) -> RunModel:
+        return run_model(jobs.cancel_run(run_id))
+
+
+def replay_policy(e: Evaluation) -> tuple[str, str | None]:
+    """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint."""
+    if e.system == "oracle":
+        return "expert", None
+    if not e.checkpoint:
+        raise RunnerError(f"evaluation {e.id} ({e.system}) names no checkpoint to fly again")
+    return "model", e.checkpoint
