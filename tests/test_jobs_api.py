@@ -1,0 +1,287 @@
+"""Evaluations and DAggerFM fine-tuning runs through the HTTP API of a real `gsmn serve` process, with real job
+processes and a real SQLite record in a data folder: an evaluation with failure attribution and a replay that
+reproduces it, a tiny fine-tuning run on its failures that finishes with a checkpoint that loads and flies, a
+before/after evaluation, limits, cancelling, a job process killed from outside, and a server killed and restarted
+mid-run that re-attaches to the run and still lists everything."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from app.fixtures import make_untrained_checkpoint
+from gsmn.attribution import STAGES
+
+HORIZON = 40
+ENV_IDS = [70, 71, 72]
+
+
+class Serve:
+    """A `gsmn serve` process on a data folder, restartable."""
+
+    def __init__(self, data_dir: Path, checkpoint: Path):
+        self.data_dir, self.checkpoint = data_dir, checkpoint
+        self.proc: subprocess.Popen | None = None
+        self.client: httpx.Client | None = None
+        self.lines: list[str] = []
+
+    def start(self) -> None:
+        self.lines = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint", str(self.checkpoint),
+             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON), "--data-dir", str(self.data_dir)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if m := re.search(r"API: (http://127\.0\.0\.1:\d+)/api", "".join(self.lines)):
+                self.client = httpx.Client(base_url=m.group(1), timeout=60)
+                return
+            time.sleep(0.1)
+        raise AssertionError("gsmn serve did not start:\n" + "".join(self.lines))
+
+    def stop(self, sig: int = signal.SIGINT) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+
+@pytest.fixture(scope="module")
+def serve(tmp_path_factory):
+    root = tmp_path_factory.mktemp("jobs")
+    s = Serve(root / "data", make_untrained_checkpoint(root / "gsmn"))
+    s.start()
+    try:
+        yield s
+    finally:
+        try:  # no job outlives the tests
+            for r in s.client.get("/api/runs").json():
+                if r["status"] in ("queued", "running"):
+                    s.client.delete(f"/api/runs/{r['id']}")
+        except (httpx.HTTPError, ValueError, AttributeError):
+            pass
+        s.stop()
+
+
+def wait_for(get, done, timeout: float = 300.0, what: str = "") -> dict:
+    deadline = time.monotonic() + timeout
+    body = None
+    while time.monotonic() < deadline:
+        body = get()
+        if done(body):
+            return body
+        time.sleep(0.5)
+    raise AssertionError(f"timed out waiting for {what}: {body}")
+
+
+def settled(client: httpx.Client, path: str, timeout: float = 300.0) -> dict:
+    return wait_for(lambda: client.get(path).json(), lambda b: b["status"] not in ("queued", "running"), timeout,
+                    path)
+
+
+def group_alive(pgid: int) -> bool:
+    """Any live (non-zombie) process in this process group."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            return True
+    return False
+
+
+def tree_hash(folder: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            h.update(p.name.encode() + p.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def evaluation(serve) -> dict:
+    client = serve.client
+    created = client.post("/api/evaluations", json={"env_ids": ENV_IDS})
+    assert created.status_code == 201, created.text
+    return settled(client, f"/api/evaluations/{created.json()['id']}")
+
+
+def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluation):
+    client = serve.client
+    assert evaluation["status"] == "finished" and evaluation["done"] == evaluation["total"] == 3, evaluation
+    assert evaluation["system"] == "gsmn" and evaluation["checkpoint"] == str(serve.checkpoint)
+    assert evaluation["summary"]["count"] == 3 and 0 <= evaluation["summary"]["success"] <= 100
+    episodes = client.get(f"/api/evaluations/{evaluation['id']}/episodes").json()
+    assert [e["env_id"] for e in episodes] == ENV_IDS
+    failures = [e for e in episodes if not e["success"]]
+    assert failures, "the untrained model fails"
+    for e in failures:
+        assert e["stage"] in STAGES and e["attribution"]["stage"] == e["stage"] and e["attribution"]["reason"]
+    assert sum(evaluation["stages"].values()) == len(failures)
+    for key in ("instruction", "landmark", "side", "ambiguous", "landmark_success", "goal_distance"):
+        assert key in episodes[0]
+    # the failure browser's filters
+    first = episodes[0]
+    by_landmark = client.get(f"/api/evaluations/{evaluation['id']}/episodes",
+                             params={"landmark": first["landmark"]}).json()
+    assert by_landmark and all(e["landmark"] == first["landmark"] for e in by_landmark)
+    by_side = client.get(f"/api/evaluations/{evaluation['id']}/episodes",
+                         params={"side": first["side"], "failed_only": True}).json()
+    assert all(e["side"] == first["side"] and not e["success"] for e in by_side)
+    unambiguous = client.get(f"/api/evaluations/{evaluation['id']}/episodes", params={"ambiguous": False}).json()
+    assert all(not e["ambiguous"] for e in unambiguous)
+    assert client.get(f"/api/evaluations/{evaluation['id']}/episodes", params={"side": "up"}).status_code == 422
+    assert any(e["id"] == evaluation["id"] for e in client.get("/api/evaluations").json())
+
+
+def test_a_replay_flies_the_episode_again_in_the_live_view(serve, evaluation):
+    client = serve.client
+    record = client.get(f"/api/evaluations/{evaluation['id']}/episodes").json()[0]
+    replay = client.post(f"/api/evaluations/{evaluation['id']}/replay", json={"env_id": record["env_id"]})
+    assert replay.status_code == 201, replay.text
+    episode = settled(client, f"/api/episodes/{replay.json()['episode_id']}", timeout=120)
+    assert episode["status"] == "finished" and episode["checkpoint"] == str(serve.checkpoint)
+    result = episode["result"]
+    assert result["steps"] == record["steps"]  # the same model, world and instruction fly the same episode
+    assert abs(result["final_x"] - record["final_x"]) < 1e-3 and abs(result["final_y"] - record["final_y"]) < 1e-3
+    assert client.get(f"/api/episodes/{episode['id']}/steps/3/maps/goal.png").status_code == 200  # with its maps
+    missing = client.post(f"/api/evaluations/{evaluation['id']}/replay", json={"env_id": 5})
+    assert missing.status_code == 404 and "no episode in environment 5" in missing.json()["detail"]
+
+
+def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve, evaluation):
+    from gsmn.model.checkpoint import load_checkpoint
+
+    client = serve.client
+    before = tree_hash(serve.checkpoint)
+    created = client.post("/api/runs", json={"preset": "tiny", "evaluation_id": evaluation["id"]})
+    assert created.status_code == 201, created.text
+    run = created.json()
+    failures = sorted(e["env_id"] for e in client.get(f"/api/evaluations/{evaluation['id']}/episodes",
+                                                        params={"failed_only": True}).json())
+    assert run["env_ids"] == failures and run["settings"]["iterations"] == 2
+    refused = client.post("/api/runs", json={"preset": "tiny"})
+    assert refused.status_code == 409 and "already running" in refused.json()["detail"]
+    fractions = []
+    done = wait_for(lambda: client.get(f"/api/runs/{run['id']}").json(),
+                    lambda b: fractions.append((b["progress"] or {}).get("fraction", 0)) or b["status"] != "running",
+                    timeout=400, what="the tiny run")
+    assert done["status"] == "finished", done["error"]
+    assert fractions == sorted(fractions) and done["progress"]["fraction"] == 1.0
+    assert [m["iteration"] for m in done["metrics"]] == [1, 2] and "loss" in done["metrics"][0]["train"]
+    model, config, _, meta = load_checkpoint(done["checkpoint"])
+    assert model.kind == "gsmn" and config.dagger.iterations == 2 and meta["metrics"]["iteration"] == 2
+    assert tree_hash(serve.checkpoint) == before, "the run must not touch the checkpoint it started from"
+
+    # it is a checkpoint to switch to: listed, and an episode flies with it
+    names = {c["name"]: c for c in client.get("/api/checkpoints").json()}
+    assert f"run-{run['id']}" in names and names[f"run-{run['id']}"]["kind"] == "gsmn"
+    flown = client.post("/api/episodes", json={"env_id": 70, "checkpoint": f"run-{run['id']}"})
+    assert flown.status_code == 201, flown.text
+    flown = settled(client, f"/api/episodes/{flown.json()['id']}", timeout=120)
+    assert flown["status"] == "finished" and flown["checkpoint"] == str(Path(done["checkpoint"]).resolve())
+
+    # before/after: the same episodes with the new checkpoint, side by side
+    after = client.post("/api/evaluations", json={"run_id": run["id"], "baseline_id": evaluation["id"]})
+    assert after.status_code == 201, after.text
+    after = settled(client, f"/api/evaluations/{after.json()['id']}")
+    assert after["status"] == "finished" and after["env_ids"] == ENV_IDS and after["run_id"] == run["id"]
+    compare = client.get(f"/api/evaluations/{evaluation['id']}/compare/{after['id']}").json()
+    assert [r["env_id"] for r in compare["episodes"]] == ENV_IDS
+    assert all({"success", "goal_distance", "stage"} <= set(r["after"]) for r in compare["episodes"])
+    assert compare["before_success"] == evaluation["summary"]["success"]
+
+
+def test_a_cancelled_run_stops_its_processes_and_is_marked_cancelled(serve):
+    client = serve.client
+    run = client.post("/api/runs", json={"preset": "tiny", "iterations": 50, "env_ids": [3, 5]}).json()
+    row = wait_for(lambda: client.get(f"/api/runs/{run['id']}").json(),
+                   lambda b: (b["progress"] or {}).get("phase") not in (None, "expert data"), timeout=200,
+                   what="the run's DAgger phase")
+    assert row["status"] == "running"
+    pid = serve_pid(serve, run["id"])
+    assert group_alive(pid)
+    cancelled = client.delete(f"/api/runs/{run['id']}")
+    assert cancelled.status_code == 200
+    final = settled(client, f"/api/runs/{run['id']}", timeout=30)
+    assert final["status"] == "cancelled" and final["checkpoint"] is None
+    assert not group_alive(pid), "every process of the run is gone"
+    again = client.delete(f"/api/runs/{run['id']}")
+    assert again.status_code == 409 and "cancelled" in again.json()["detail"]
+    assert client.get("/api/health").json()["status"] == "ok"
+
+
+def test_a_run_whose_process_is_killed_is_marked_failed_and_the_server_keeps_serving(serve):
+    client = serve.client
+    run = client.post("/api/runs", json={"preset": "tiny", "iterations": 50, "env_ids": [3, 5]}).json()
+    wait_for(lambda: client.get(f"/api/runs/{run['id']}").json(), lambda b: b["status"] == "running",
+             timeout=60, what="a running run")
+    pid = serve_pid(serve, run["id"])
+    time.sleep(2)
+    os.kill(pid, signal.SIGKILL)  # the job's main process dies, as in an out-of-memory kill
+    final = settled(client, f"/api/runs/{run['id']}", timeout=30)
+    assert final["status"] == "failed" and "SIGKILL" in final["error"]
+    assert serve.proc.poll() is None and client.get("/api/health").json()["status"] == "ok"
+    assert not group_alive(pid)
+    other = client.post("/api/evaluations", json={"env_ids": [75]})  # the limit is free again
+    assert other.status_code == 201, other.text
+    assert settled(client, f"/api/evaluations/{other.json()['id']}")["status"] == "finished"
+
+
+def test_a_server_killed_mid_run_reattaches_and_lists_every_past_job(serve, evaluation):
+    client = serve.client
+    runs_before = client.get("/api/runs").json()
+    evaluations_before = client.get("/api/evaluations").json()
+    run = client.post("/api/runs", json={"preset": "tiny", "env_ids": [3, 5]}).json()
+    wait_for(lambda: client.get(f"/api/runs/{run['id']}").json(),
+             lambda b: (b["progress"] or {}).get("phase") not in (None, "expert data"), timeout=200,
+             what="the run's DAgger phase")
+    pid = serve_pid(serve, run["id"])
+    serve.stop(signal.SIGKILL)  # no chance to clean up
+    assert group_alive(pid), "the run does not depend on the server"
+    serve.start()
+    client = serve.client
+    assert "re-attached to 1 running" in serve.output()
+    assert client.get(f"/api/runs/{run['id']}").json()["status"] == "running"
+    done = settled(client, f"/api/runs/{run['id']}", timeout=400)
+    assert done["status"] == "finished" and len(done["metrics"]) == 2, done["error"]
+    listed = {r["id"]: r for r in client.get("/api/runs").json()}
+    for r in runs_before:
+        assert listed[r["id"]]["status"] == r["status"] and listed[r["id"]]["checkpoint"] == r["checkpoint"]
+    evaluations = {e["id"]: e for e in client.get("/api/evaluations").json()}
+    for e in evaluations_before:
+        assert evaluations[e["id"]]["status"] == e["status"] and evaluations[e["id"]]["summary"] == e["summary"]
+    assert len(client.get(f"/api/evaluations/{evaluation['id']}/episodes").json()) == 3
+
+    # a graceful restart, too
+    serve.stop()
+    serve.start()
+    assert {r["id"] for r in serve.client.get("/api/runs").json()} == set(listed)
+
+
+def serve_pid(serve: Serve, run_id: int) -> int:
+    """The run's process id, from the server's database (the API does not expose pids)."""
+    import sqlite3
+
+    with sqlite3.connect(serve.data_dir / "gsmn.sqlite") as db:
+        return int(db.execute("SELECT pid FROM runs WHERE id = ?", (run_id,)).fetchone()[0])
