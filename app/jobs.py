@@ -274,15 +274,13 @@ class JobManager:
             label = f"{split}, first {len(ids)}"
         elif baseline is not None:
             ids = list(baseline.env_ids)
-            label = f"the episodes of evaluation {baseline.id}"
+            label = f"rerun of #{baseline.id}"
         else:
             raise RunnerError("give a split (and episodes), env_ids, or a baseline evaluation to rerun")
         if not ids or min(ids) < 0 or len(ids) > MAX_ENVIRONMENTS:
             raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids, got {len(ids)}")
         if len(set(ids)) != len(ids):
             raise RunnerError("environment ids repeat")
-        if run_id is not None:
-            label += f", run {run_id}'s checkpoint"
         with self._lock:
             self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
             eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,

@@ -20,6 +20,7 @@ import viser
 from app.api import make_api
 from app.commands import Conflict, RunnerError, ShowEnv
 from app.jobs import JobManager
+from app.jobs_view import JobsView
 from app.runner import Runner
 from app.viewer import Viewer
 from gsmn.config import RunConfig
@@ -115,6 +116,7 @@ class Dashboard:
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when not verbose
             self.viser = viser.ViserServer(host=host, port=port, verbose=False, label="GSMN dashboard")
         self.viewer = Viewer(self.viser, self.runner, env_id)
+        self.jobs_view = JobsView(self.viewer, self.jobs)
         page_url = _url(host, self.viser.get_port())
         self.api = ApiServer(make_api(self.runner, page_url, self.jobs), host, api_port)
         self.api.wait_started()
@@ -135,6 +137,7 @@ class Dashboard:
     def close(self) -> None:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
+        self.jobs_view.close()
         self.viewer.close()
         self.jobs.close()
         self.runner.close()

@@ -1,0 +1,617 @@
+"""The page's "Failures" and "Fine-tune" tabs (viser): evaluate a checkpoint, browse its episodes with their
+failure attribution, replay one in the live view with one click, launch DAggerFM on the failures selected, watch
+its progress and curves, cancel it, fly its checkpoint, and rerun the same episodes before/after side by side.
+
+The jobs themselves run in their own processes (`app.jobs`); this view only posts requests to the JobManager and
+reads the database. Job events and clicks go into one queue that a UI thread drains, redrawing at most twice a
+second, so a running job never slows the live view. The text and tables are pure functions at the end.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import math
+import queue
+import threading
+import time
+import traceback
+
+import numpy as np
+import viser
+import viser.uplot
+
+from app.commands import RunnerError, RunnerListener, StartEpisode
+from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
+from app.jobs import RUN_PRESETS, JobManager, run_settings
+from app.jobs_api import replay_policy
+from app.panels import error_html
+from app.recording import Episode
+from gsmn.attribution import STAGE_TITLES, STAGES
+from gsmn.evaluation import parse_env_ids
+from gsmn.world.spec import SPLITS
+
+log = logging.getLogger("gsmn.dashboard")
+
+ROWS = 8  # episode buttons per page of the failure browser
+ALL = "all"
+EXPERT_CHOICE = "Expert (oracle)"
+ENV_TRAIN = "train split"
+REFRESH_SECONDS = 0.5
+
+
+class JobsView(RunnerListener):
+    def __init__(self, viewer, jobs: JobManager):
+        self.viewer, self.jobs = viewer, jobs
+        self.server: viser.ViserServer = viewer.server
+        self.runner = viewer.runner
+        self._events: queue.Queue = queue.Queue()
+        self._closing = False
+        self.evaluation_id: int | None = None  # the evaluation browsed
+        self.rows: list[EpisodeRow] = []  # the episodes the filters select
+        self.page = 0
+        self.selected: EpisodeRow | None = None
+        self.replays: dict[int, tuple[int, int]] = {}  # live episode id -> (evaluation id, env id)
+        self.replay_note = ""
+        self.compare_ids: tuple[int, int] | None = None  # (before, after) shown side by side
+        self._choices: dict[str, int] = {}
+        self._run_choices: dict[str, int] = {}
+        self._selected_failures: list[int] = []  # the failures the browser's filters select, for a run
+        self._build()
+        jobs.listeners.append(lambda kind, job_id: self._events.put(("job", kind, job_id)))
+        self.runner.listeners.append(self)
+        self.thread = threading.Thread(target=self._loop, name="gsmn-jobs-view", daemon=True)
+        self.thread.start()
+        self._events.put(("job", "start", 0))
+
+    def close(self) -> None:
+        self._closing = True
+        self._events.put(("close",))
+        self.thread.join(timeout=5)
+
+    # -- runner events (runner thread: only enqueue) ----------------------------------------------------------
+    def on_episode_end(self, episode: Episode) -> None:
+        if episode.id in self.replays:
+            self._events.put(("replayed", episode))
+
+    # -- the GUI ----------------------------------------------------------------------------------------------
+    def _build(self) -> None:
+        gui, panel = self.server.gui, self.viewer.panel
+        with panel.add_tab("Failures", viser.Icon.BUG):
+            with gui.add_folder("Evaluate a checkpoint"):
+                self.eval_checkpoint = gui.add_dropdown("Checkpoint", self._checkpoint_choices(expert=True))
+                self.eval_split = gui.add_dropdown("Split", SPLITS, initial_value="test")
+                self.eval_episodes = gui.add_number("Episodes", 30, min=1, max=5000, step=1,
+                                                    hint="the split's first this many environments")
+                self.eval_ids = gui.add_text("Or env ids", "", hint="'70:80' or '70,73,81': instead of the split")
+                self.eval_buttons = gui.add_button_group("Evaluation", ("Evaluate", "Cancel"))
+                self.eval_progress = gui.add_progress_bar(0.0, visible=False)
+                self.eval_status = gui.add_markdown("Evaluations run in their own process; their episodes and "
+                                                    "failures appear below as they finish.")
+                self.import_path = gui.add_text("Load results", "", hint="a `gsmn eval --json` file")
+                self.import_button = gui.add_button("Load gsmn eval JSON", icon=viser.Icon.UPLOAD)
+            with gui.add_folder("Failure browser"):
+                self.evaluation = gui.add_dropdown("Evaluation", ("(none yet)",))
+                self.summary = gui.add_html("")
+                self.failed_only = gui.add_checkbox("Failed only", True)
+                self.landmark = gui.add_dropdown("Landmark", (ALL,))
+                self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
+                self.ambiguous = gui.add_dropdown("Ambiguous", (ALL, "ambiguous", "unambiguous"))
+                self.stage = gui.add_dropdown("Attributed to", (ALL, *STAGES))
+                self.list_note = gui.add_markdown("")
+                self.row_buttons = [gui.add_button(f"row {k}", visible=False) for k in range(ROWS)]
+                self.pager = gui.add_button_group("Page", ("Previous", "Next"))
+                self.detail = gui.add_html(_placeholder("Pick an episode: it flies again in the live view with "
+                                                        "its maps, and its attribution shows here."))
+        with panel.add_tab("Fine-tune", viser.Icon.SCHOOL):
+            with gui.add_folder("DAggerFM from a checkpoint"):
+                self.run_checkpoint = gui.add_dropdown("Start from", self._checkpoint_choices(expert=False))
+                self.run_preset = gui.add_dropdown("Preset", tuple(RUN_PRESETS), initial_value="tiny",
+                                                   hint="tiny: a minute or two here; small: tens of minutes; paper: "
+                                                        "the original's 150 iterations")
+                s = RUN_PRESETS["tiny"]
+                self.run_iterations = gui.add_number("Iterations", s.iterations, min=1, max=10000, step=1)
+                self.run_nd = gui.add_number("N_D (rollouts/iter)", s.rollouts_per_iteration, min=1, step=1)
+                self.run_m = gui.add_number("M (dataset size)", s.dataset_size, min=1, step=1)
+                self.run_beta0 = gui.add_number("beta0", s.beta0, min=0.0, max=1.0, step=0.01,
+                                                hint="the expert acts with probability beta0^i in iteration i")
+                self.run_lr = gui.add_number("Learning rate", s.learning_rate, min=1e-6, max=1.0, step=1e-5)
+                self.run_envs = gui.add_dropdown("Environments", (ENV_TRAIN,))
+                self.run_buttons = gui.add_button_group("Run", ("Launch", "Cancel"))
+                self.run_progress = gui.add_progress_bar(0.0, visible=False)
+                self.run_status = gui.add_markdown("A run trains in its own process; one at a time.")
+                self.curves = gui.add_uplot(
+                    data=(np.zeros(1), np.full(1, np.nan), np.full(1, np.nan), np.full(1, np.nan)),
+                    series=({"label": "iteration"}, {"label": "loss", "stroke": "#2870f5", "width": 2},
+                            {"label": "action loss", "stroke": "#e08020", "width": 2},
+                            {"label": "learner steps", "stroke": "#1e8449", "width": 2, "dash": [4, 3]}),
+                    title="Training loss per iteration, and the share of steps the learner flew", aspect=1.6,
+                    scales={"x": {"time": False}}, axes=({"label": "iteration"}, {}))
+            with gui.add_folder("Runs"):
+                self.runs_table = gui.add_html("")
+                self.run_choice = gui.add_dropdown("Finished run", ("(none yet)",))
+                self.run_actions = gui.add_button_group("Checkpoint", ("Fly with it", "Before/after"))
+                self.run_note = gui.add_markdown("")
+            with gui.add_folder("Before / after"):
+                self.compare = gui.add_html(_placeholder("Before/after reruns the failures' evaluation with the "
+                                                         "finished run's checkpoint and shows both side by side."))
+
+        self.eval_buttons.on_click(lambda e: self._events.put(("eval", e.target.value)))
+        self.import_button.on_click(lambda _: self._events.put(("import", self.import_path.value.strip())))
+        self.evaluation.on_update(lambda e: e.client is not None and self._events.put(("browse",)))
+        for control in (self.failed_only, self.landmark, self.side, self.ambiguous, self.stage):
+            control.on_update(lambda e: e.client is not None and self._events.put(("filter",)))
+        for k, button in enumerate(self.row_buttons):
+            button.on_click(lambda _, k=k: self._events.put(("row", k)))
+        self.pager.on_click(lambda e: self._events.put(("page", e.target.value)))
+        self.run_preset.on_update(lambda e: e.client is not None and self._events.put(("preset",)))
+        self.run_buttons.on_click(lambda e: self._events.put(("run", e.target.value)))
+        self.run_actions.on_click(lambda e: self._events.put(("run_action", e.target.value)))
+
+    def _checkpoint_choices(self, expert: bool) -> tuple[str, ...]:
+        choices = tuple(c for c in self.viewer._policy_choices() if c != EXPERT_CHOICE)
+        if expert:
+            choices += (EXPERT_CHOICE,)
+        return choices or ("(no checkpoint)",)
+
+    # -- the UI thread ----------------------------------------------------------------------------------------
+    def _loop(self) -> None:
+        last = 0.0
+        pending = False
+        while not self._closing:
+            events = []
+            try:
+                events.append(self._events.get(timeout=REFRESH_SECONDS))
+                while True:
+                    events.append(self._events.get_nowait())
+            except queue.Empty:
+                pass
+            try:
+                for event in events:
+                    if event[0] == "close":
+                        return
+                    if event[0] == "job":
+                        pending = True
+                    else:
+                        self._apply(event)
+                if pending and time.monotonic() - last >= REFRESH_SECONDS:
+                    self._refresh()
+                    pending, last = False, time.monotonic()
+            except Exception:  # noqa: BLE001 - keep the page alive; the log says what broke
+                log.error("jobs view update failed:\n%s", traceback.format_exc())
+
+    def _apply(self, event: tuple) -> None:
+        kind = event[0]
+        if kind == "eval":
+            self._evaluate() if event[1] == "Evaluate" else self._cancel_evaluation()
+        elif kind == "import":
+            self._import(event[1])
+        elif kind == "browse":
+            self.evaluation_id = self._choices.get(self.evaluation.value)
+            self.page, self.selected = 0, None
+            self._refresh_browser(reset_filters=True)
+        elif kind == "filter":
+            self.page = 0
+            self._refresh_browser()
+        elif kind == "page":
+            pages = max(1, math.ceil(len(self.rows) / ROWS))
+            self.page = max(0, min(pages - 1, self.page + (1 if event[1] == "Next" else -1)))
+            self._show_rows()
+        elif kind == "row":
+            k = self.page * ROWS + event[1]
+            if k < len(self.rows):
+                self._replay(self.rows[k])
+        elif kind == "replayed":
+            self._replayed(event[1])
+        elif kind == "replay_failed":
+            self.detail.content = episode_html(event[1], error_html(f"Not replayed: {html.escape(event[2])}"))
+        elif kind == "preset":
+            s = RUN_PRESETS[self.run_preset.value]
+            self.run_iterations.value, self.run_nd.value, self.run_m.value = (s.iterations, s.rollouts_per_iteration,
+                                                                              s.dataset_size)
+            self.run_beta0.value, self.run_lr.value = s.beta0, s.learning_rate
+        elif kind == "run":
+            self._launch() if event[1] == "Launch" else self._cancel_run()
+        elif kind == "run_action":
+            self._run_action(event[1])
+
+    # -- evaluations -------------------------------------------------------------------------------------------
+    def _evaluate(self) -> None:
+        choice = self.eval_checkpoint.value
+        system, checkpoint = ("oracle", None) if choice == EXPERT_CHOICE else (None, choice.removeprefix("Model: "))
+        try:
+            ids = parse_env_ids(self.eval_ids.value.strip()) if self.eval_ids.value.strip() else None
+            e = self.jobs.start_evaluation(checkpoint, system, None if ids else self.eval_split.value,
+                                           None if ids else int(self.eval_episodes.value), ids)
+        except (RunnerError, ValueError) as err:
+            self.eval_status.content = error_html(f"**Not started:** {html.escape(str(err))}")
+            return
+        self.evaluation_id = e.id
+        self.eval_status.content = f"Evaluation {e.id} started: {html.escape(e.label)}."
+        self._refresh()
+
+    def _cancel_evaluation(self) -> None:
+        active = self.jobs.db.evaluations(ACTIVE)
+        if not active:
+            self.eval_status.content = "No evaluation is running."
+            return
+        try:
+            self.jobs.cancel_evaluation(active[-1].id)
+        except RunnerError as err:
+            self.eval_status.content = error_html(html.escape(str(err)))
+
+    def _import(self, path: str) -> None:
+        if not path:
+            self.eval_status.content = error_html("Type the path of a `gsmn eval --json` file first.")
+            return
+        try:
+            e = self.jobs.import_evaluation(path)
+        except RunnerError as err:
+            self.eval_status.content = error_html(f"**Not loaded:** {html.escape(str(err))}")
+            return
+        self.evaluation_id = e.id
+        self.eval_status.content = f"Loaded {html.escape(path)} as evaluation {e.id} ({e.total} episodes)."
+        self._refresh()
+
+    # -- the failure browser -----------------------------------------------------------------------------------
+    def _refresh_browser(self, reset_filters: bool = False) -> None:
+        e = self.jobs.db.evaluation(self.evaluation_id) if self.evaluation_id else None
+        if e is None:
+            self.summary.content = _placeholder("No evaluation yet: evaluate a checkpoint above.")
+            self.rows = []
+            self._show_rows()
+            return
+        every = self.jobs.db.episodes(e.id)
+        landmarks = (ALL, *sorted({r.landmark for r in every}))
+        if tuple(self.landmark.options) != landmarks:
+            keep = self.landmark.value if self.landmark.value in landmarks and not reset_filters else ALL
+            self.landmark.options = landmarks
+            self.landmark.value = keep
+        self.summary.content = summary_html(e, self.jobs.db.stage_counts(e.id))
+        ambiguous = {"ambiguous": True, "unambiguous": False}.get(self.ambiguous.value)
+        self.rows = self.jobs.db.episodes(
+            e.id, failed_only=bool(self.failed_only.value),
+            landmark=None if self.landmark.value == ALL else self.landmark.value,
+            side=None if self.side.value == ALL else self.side.value, ambiguous=ambiguous,
+            stage=None if self.stage.value == ALL else self.stage.value)
+        self._show_rows()
+        failures = [r.env_id for r in self.rows if not r.success]
+        label = f"failures selected in the browser ({len(failures)})"
+        options = (ENV_TRAIN, label) if failures else (ENV_TRAIN,)
+        if tuple(self.run_envs.options) != options:
+            was_failures = self.run_envs.value != ENV_TRAIN
+            self.run_envs.options = options
+            self.run_envs.value = label if (was_failures or len(options) > 1) and failures else ENV_TRAIN
+        self._selected_failures = failures
+
+    def _show_rows(self) -> None:
+        n = len(self.rows)
+        pages = max(1, math.ceil(n / ROWS))
+        self.page = min(self.page, pages - 1)
+        shown = self.rows[self.page * ROWS:(self.page + 1) * ROWS]
+        for k, button in enumerate(self.row_buttons):
+            if k < len(shown):
+                button.label = episode_label(shown[k])
+                button.visible = True
+            else:
+                button.visible = False
+        self.list_note.content = (f"**{n}** episode{'s' if n != 1 else ''} match; page {self.page + 1} of {pages}. "
+                                  "Click one to fly it again in the live view." if n else "No episode matches.")
+
+    def _replay(self, row: EpisodeRow) -> None:
+        self.selected = row
+        e = self.jobs.db.evaluation(row.evaluation_id)
+        try:
+            policy, checkpoint = replay_policy(e)
+        except RunnerError as err:
+            self.detail.content = episode_html(row, error_html(html.escape(str(err))))
+            return
+        self.replay_note = "Flying it again in the live view..."
+        self.detail.content = episode_html(row, self.replay_note)
+        future = self.runner.post(StartEpisode(row.env_id, None, policy, checkpoint, preempt=True))
+
+        def started(f, row=row) -> None:
+            try:
+                self.replays[f.result().id] = (row.evaluation_id, row.env_id)
+            except Exception as err:  # noqa: BLE001 - shown to the user
+                self._events.put(("replay_failed", row, str(err)))
+
+        future.add_done_callback(started)
+
+    def _replayed(self, episode: Episode) -> None:
+        evaluation_id, env_id = self.replays.pop(episode.id)
+        row = self.jobs.db.episode(evaluation_id, env_id)
+        if row is None or self.selected is None or (self.selected.evaluation_id, self.selected.env_id) != (
+                evaluation_id, env_id):
+            return
+        if episode.result is None:
+            note = f"The replay {episode.status} after {len(episode.steps)} steps."
+        else:
+            gap = math.hypot(episode.result.final_x - row.final_x, episode.result.final_y - row.final_y)
+            same = gap < 0.01 and episode.result.steps == row.steps
+            note = (f"Replayed as episode {episode.id}: "
+                    + ("it reproduces the evaluation (same steps, final position within 1 cm). Scrub the timeline to "
+                       "see its maps at any step." if same else
+                       f"it differs from the evaluation ({episode.result.steps} steps, ended {gap:.2f} m away): the "
+                       f"server's settings differ from the evaluation's."))
+        self.detail.content = episode_html(row, note)
+
+    # -- runs --------------------------------------------------------------------------------------------------
+    def _launch(self) -> None:
+        choice = self.run_checkpoint.value
+        checkpoint = choice.removeprefix("Model: ") if choice.startswith("Model: ") else None
+        env_ids = None
+        if self.run_envs.value != ENV_TRAIN:
+            env_ids = list(self._selected_failures)
+        try:
+            settings = run_settings(self.run_preset.value, iterations=int(self.run_iterations.value),
+                                    rollouts_per_iteration=int(self.run_nd.value), dataset_size=int(self.run_m.value),
+                                    beta0=float(self.run_beta0.value), learning_rate=float(self.run_lr.value))
+            r = self.jobs.start_run(settings, checkpoint, env_ids or None,
+                                    self.evaluation_id if env_ids else None)
+        except (RunnerError, ValueError) as err:
+            self.run_status.content = error_html(f"**Not started:** {html.escape(str(err))}")
+            return
+        where = f"{len(env_ids)} failures of evaluation {self.evaluation_id}" if env_ids else "the train split"
+        self.run_status.content = f"Run {r.id} started from {html.escape(short_path(r.init_checkpoint))} on {where}."
+        self._refresh()
+
+    def _cancel_run(self) -> None:
+        active = self.jobs.db.runs(ACTIVE)
+        if not active:
+            self.run_status.content = "No run is going."
+            return
+        try:
+            self.jobs.cancel_run(active[-1].id)
+        except RunnerError as err:
+            self.run_status.content = error_html(html.escape(str(err)))
+
+    def _run_action(self, action: str) -> None:
+        run_id = self._run_choices.get(self.run_choice.value)
+        run = self.jobs.db.run(run_id) if run_id else None
+        if run is None or run.status != FINISHED:
+            self.run_note.content = "No finished run yet."
+            return
+        name = f"Model: run-{run.id}"
+        if action == "Fly with it":
+            self._refresh_checkpoints()
+            if name in self.viewer.policy.options:
+                self.viewer.policy.value = name
+                self.run_note.content = (f"The Episode panel's policy is now **run-{run.id}**: press **Run** there, "
+                                         "or replay a failure.")
+            return
+        baseline = run.source_evaluation_id or self.evaluation_id
+        if baseline is None:
+            self.run_note.content = error_html("No evaluation to compare with: evaluate a checkpoint first.")
+            return
+        try:
+            e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=baseline, run_id=run.id)
+        except RunnerError as err:
+            self.run_note.content = error_html(f"**Not started:** {html.escape(str(err))}")
+            return
+        self.compare_ids = (baseline, e.id)
+        self.run_note.content = f"Evaluation {e.id} reruns the episodes of evaluation {baseline} with run-{run.id}."
+        self._refresh()
+
+    # -- refreshing from the database --------------------------------------------------------------------------
+    def _refresh(self) -> None:
+        evaluations = self.jobs.db.evaluations()
+        runs = self.jobs.db.runs()
+        self._choices = {evaluation_label(e): e.id for e in reversed(evaluations)}
+        options = tuple(self._choices) or ("(none yet)",)
+        if self.evaluation_id is None and evaluations:
+            self.evaluation_id = evaluations[-1].id
+        if tuple(self.evaluation.options) != options:
+            self.evaluation.options = options
+        label = next((k for k, v in self._choices.items() if v == self.evaluation_id), None)
+        if label is not None and self.evaluation.value != label:
+            self.evaluation.value = label
+        self._refresh_browser()
+        self._refresh_evaluation_status(evaluations)
+        self._refresh_runs(runs)
+        self._refresh_compare()
+
+    def _refresh_evaluation_status(self, evaluations: list[Evaluation]) -> None:
+        active = [e for e in evaluations if e.status in ACTIVE]
+        if active:
+            e = active[-1]
+            self.eval_progress.visible = True
+            self.eval_progress.value = 100.0 * e.done / max(1, e.total)
+            self.eval_status.content = f"Evaluation {e.id} ({html.escape(e.label)}): {e.done} of {e.total} episodes."
+        elif evaluations and self.eval_progress.visible:
+            e = evaluations[-1]
+            self.eval_progress.visible = False
+            self.eval_status.content = f"Evaluation {e.id} {e.status}." + (
+                f" {html.escape(error_summary(e.error))}" if e.status == "failed" else "")
+
+    def _refresh_runs(self, runs: list[Run]) -> None:
+        self.runs_table.content = runs_html(runs)
+        active = [r for r in runs if r.status in ACTIVE]
+        shown = active[-1] if active else (runs[-1] if runs else None)
+        if shown is not None:
+            p = shown.progress or {}
+            self.run_progress.visible = shown.status in ACTIVE
+            self.run_progress.value = 100.0 * float(p.get("fraction", 0.0))
+            text = html.escape(p.get("text", "starting"))
+            if shown.status in ACTIVE:
+                self.run_status.content = f"**Run {shown.id}** (running): {text}."
+            else:
+                self.run_status.content = f"**Run {shown.id}** {shown.status}" + (
+                    f": checkpoint **run-{shown.id}**." if shown.status == FINISHED else
+                    f". {html.escape(error_summary(shown.error))}")
+            self.curves.data = curve_data(shown.metrics)
+        finished = [r for r in runs if r.status == FINISHED]
+        choices = {f"run-{r.id} ({len(r.env_ids) if r.env_ids else 'train'} envs, {r.settings['iterations']} it.)": r.id
+                   for r in reversed(finished)}
+        if choices and tuple(self.run_choice.options) != tuple(choices):
+            self._run_choices = choices
+            self.run_choice.options = tuple(choices)
+            self._refresh_checkpoints()
+
+    def _refresh_checkpoints(self) -> None:
+        """Finished runs are checkpoints to switch to: in the Episode panel's policy list and here."""
+        policy = self.viewer._policy_choices()
+        if tuple(self.viewer.policy.options) != policy:
+            value = self.viewer.policy.value
+            self.viewer.policy.options = policy
+            if value in policy:
+                self.viewer.policy.value = value
+        for dropdown, expert in ((self.eval_checkpoint, True), (self.run_checkpoint, False)):
+            choices = self._checkpoint_choices(expert)
+            if tuple(dropdown.options) != choices:
+                value = dropdown.value
+                dropdown.options = choices
+                if value in choices:
+                    dropdown.value = value
+
+    def _refresh_compare(self) -> None:
+        if self.compare_ids is None:
+            latest = [e for e in self.jobs.db.evaluations() if e.baseline_id is not None]
+            if not latest:
+                return
+            self.compare_ids = (latest[-1].baseline_id, latest[-1].id)
+        before, after = self.compare_ids
+        try:
+            self.compare.content = compare_html(self.jobs.compare(before, after),
+                                                self.jobs.db.evaluation(after))
+        except RunnerError as err:
+            self.compare.content = error_html(html.escape(str(err)))
+
+
+# -- text and tables (pure) -------------------------------------------------------------------------------------
+def short_path(path: str) -> str:
+    parts = path.rstrip("/").split("/")
+    return "/".join(parts[-3:]) if len(parts) > 3 else path
+
+
+def error_summary(error: str | None) -> str:
+    """The first line of a job's error and, when its output was attached, the last line of that (the exception)."""
+    lines = [line for line in (error or "").splitlines() if line.strip()]
+    if not lines:
+        return ""
+    return lines[0].removesuffix("; its output ends:") + (f": {lines[-1].strip()}" if len(lines) > 1 else "")
+
+
+def _placeholder(text: str) -> str:
+    return f'<div style="padding:8px;font-size:13px;opacity:.7">{html.escape(text)}</div>'
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.0f} %"
+
+
+def evaluation_label(e: Evaluation) -> str:
+    s = e.summary or {}
+    if e.system == "oracle":
+        what = "expert"
+    elif e.run_id is not None:
+        what = f"run-{e.run_id}"
+    else:
+        what = (e.checkpoint or e.system).rstrip("/").split("/")[-1]
+    status = "" if e.status == FINISHED else f", {e.status}"
+    return f"#{e.id} {what}: {e.label}, {_pct(s.get('success'))} success{status}"
+
+
+def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
+    s = e.summary or {}
+    failures = sum(stages.values())
+    bars = []
+    for stage in (*STAGES, "unattributed"):
+        n = stages.get(stage, 0)
+        if stage == "unattributed" and not n:
+            continue
+        width = 100 * n / failures if failures else 0
+        bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
+                    f'<span style="width:104px">{STAGE_TITLES.get(stage, "no maps recorded")}</span>'
+                    f'<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
+                    f'<span style="display:block;width:{width:.0f}%;height:10px;background:{_STAGE_COLOURS[stage]};'
+                    f'border-radius:2px"></span></span><b style="width:24px;text-align:right">{n}</b></div>')
+    distance = s.get("mean_distance")
+    distance = "n/a" if distance is None or math.isnan(distance) else f"{distance:.1f} m"
+    return (f'<div class="gsmn-evaluation" data-id="{e.id}" data-status="{e.status}" style="font-size:13px">'
+            f"<div><b>{e.done}/{e.total}</b> episodes · success <b>{_pct(s.get('success'))}</b> · landmark "
+            f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
+            f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
+            f"{''.join(bars)}</div>")
+
+
+_STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
+                  "unattributed": "#999"}
+
+
+def episode_label(r: EpisodeRow) -> str:
+    mark = "✓" if r.success else "✗"
+    stage = f" · {r.stage}" if r.stage else ""
+    return f"▶ {r.env_id} {mark} {r.side} of the {r.landmark} · {r.goal_distance:.1f} m{stage}"
+
+
+def episode_html(r: EpisodeRow, note: str) -> str:
+    a = r.attribution or {}
+    rows = [("instruction", html.escape(r.instruction)), ("success", "yes" if r.success else "no"),
+            ("landmark success", "yes" if r.landmark_success else "no"),
+            ("distance to goal", f"{r.goal_distance:.1f} m"), ("ambiguous", "yes" if r.ambiguous else "no"),
+            ("ended", f"said STOP after {r.steps} steps" if r.stopped else f"horizon after {r.steps} steps")]
+    if a:
+        rows += [("perceived", ("yes" if a["perceived"] else "no") + (
+                    f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
+                    if a["observed"] else " (never seen)")),
+                 ("grounded", ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
+                     f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})"
+                     if a.get("other_landmark") else ")")),
+                 ("goal map", ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m "
+                              f"from the goal, P {a['goal_peak_p']:.2f})")]
+    stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
+    verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
+               f"{html.escape(STAGE_TITLES.get(stage, stage))}</div>"
+               f"<div style='margin-bottom:4px'>{html.escape(a.get('reason', ''))}</div>") if a or r.success else ""
+    table = "".join(f"<tr><td style='opacity:.7;padding-right:8px'>{k}</td><td>{v}</td></tr>" for k, v in rows)
+    return (f'<div class="gsmn-episode" data-env="{r.env_id}" data-evaluation="{r.evaluation_id}" '
+            f'style="font-size:13px;padding-right:8px"><div style="font-weight:600">Environment {r.env_id}</div>'
+            f"{verdict}<table>{table}</table><div class='gsmn-replay' style='margin-top:4px'>{note}</div></div>")
+
+
+def runs_html(runs: list[Run]) -> str:
+    if not runs:
+        return _placeholder("No run yet.")
+    head = "".join(f"<th style='text-align:left;padding-right:6px'>{h}</th>" for h in
+                   ("run", "status", "progress", "environments", "loss"))
+    body = []
+    for r in reversed(runs[-12:]):
+        p = r.progress or {}
+        loss = r.metrics[-1]["train"].get("loss") if r.metrics else None
+        envs = f"{len(r.env_ids)} chosen" if r.env_ids else "train split"
+        body.append(f"<tr data-run='{r.id}' data-status='{r.status}'><td>run-{r.id}</td><td>{r.status}</td>"
+                    f"<td>{100 * float(p.get('fraction', 0)):.0f} %</td><td>{envs}</td>"
+                    f"<td>{'' if loss is None else f'{loss:.3f}'}</td></tr>")
+    return f"<table class='gsmn-runs' style='font-size:12px'><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
+    if not metrics:
+        return np.zeros(1), np.full(1, np.nan), np.full(1, np.nan), np.full(1, np.nan)
+    it = np.array([m.get("iteration", k + 1) for k, m in enumerate(metrics)], np.float64)
+    loss = np.array([m.get("train", {}).get("loss", np.nan) for m in metrics], np.float64)
+    action = np.array([m.get("train", {}).get("loss_action", np.nan) for m in metrics], np.float64)
+    learner = np.array([m.get("learner_step_fraction", np.nan) for m in metrics], np.float64)
+    return it, loss, action, learner
+
+
+def compare_html(c: dict, after: Evaluation | None) -> str:
+    def cell(b: dict) -> str:
+        mark = "<b style='color:#1e8449'>✓</b>" if b["success"] else "<b style='color:#c0392b'>✗</b>"
+        return f"{mark} {b['goal_distance']:.1f} m{' · ' + b['stage'] if b['stage'] else ''}"
+
+    if after is not None and after.status in ACTIVE:
+        return _placeholder(f"Rerunning: {after.done} of {after.total} episodes done.")
+    rows = "".join(f"<tr><td>{r['env_id']}</td><td>{cell(r['before'])}</td><td>{cell(r['after'])}</td></tr>"
+                   for r in c["episodes"])
+
+    def dist(v) -> str:
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.1f} m"
+
+    return (f"<div class='gsmn-compare' data-before='{c['before']}' data-after='{c['after']}' style='font-size:12px'>"
+            f"<div style='font-size:13px;margin-bottom:4px'>Evaluation {c['before']} → {c['after']}: success "
+            f"<b>{_pct(c['before_success'])} → {_pct(c['after_success'])}</b>, mean distance "
+            f"{dist(c['before_mean_distance'])} → {dist(c['after_mean_distance'])}; {c['fixed']} fixed, "
+            f"{c['broken']} broken.</div><table><tr><th style='text-align:left'>env</th><th style='text-align:left'>"
+            f"before</th><th style='text-align:left'>after</th></tr>{rows}</table></div>")

@@ -1,0 +1,154 @@
+"""End to end in headless Chromium: evaluate a checkpoint from the page, open the failure browser, pick a failure
+and replay it in the live view with its maps, launch a tiny DAggerFM run on the failures selected, watch its
+progress to the end, switch to its checkpoint, and compare before/after.
+
+Real processes (the evaluation and the run are `gsmn eval` and `gsmn train dagger` children of the server), a
+real SQLite record, a real Chromium. Like tests/test_dashboard_browser.py it fails, not skips, without Playwright
+or a Chromium.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import time
+
+import playwright.sync_api as playwright_api
+import pytest
+
+from app.fixtures import make_untrained_checkpoint
+
+CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
+HORIZON = 40
+
+
+def field(page, label: str):
+    """The input of a labelled viser control (as in tests/test_dashboard_browser.py)."""
+    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
+        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory):
+    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
+    from app.server import Dashboard
+    from gsmn.config import preset, with_overrides
+
+    root = tmp_path_factory.mktemp("failures")
+    folder = make_untrained_checkpoint(root / "gsmn")
+    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
+                  api_port=0, checkpoints_root=root / "empty", data_dir=root / "data")
+    yield d
+    for run in d.jobs.db.runs(("queued", "running")):  # no job outlives the test
+        d.jobs.cancel_run(run.id)
+    d.close()
+
+
+@pytest.fixture(scope="module")
+def page(dashboard):
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.set_default_timeout(60_000)
+        page.goto(dashboard.urls.page)
+        yield page
+        browser.close()
+
+
+def wait_js(page, script: str, predicate, timeout: float = 120.0, what: str = ""):
+    deadline = time.monotonic() + timeout
+    value = None
+    while time.monotonic() < deadline:
+        value = page.evaluate(script)
+        if predicate(value):
+            return value
+        page.wait_for_timeout(200)
+    raise AssertionError(f"timed out waiting for {what}; last {value!r}")
+
+
+EVALUATION = """() => { const e = document.querySelector('.gsmn-evaluation');
+    return e ? {id: e.dataset.id, status: e.dataset.status, text: e.innerText} : null; }"""
+MAPS = """() => { const m = document.querySelector('.gsmn-maps');
+    return m ? {episode: m.dataset.episode, step: m.dataset.step === '' ? -1 : +m.dataset.step} : null; }"""
+REPLAY = """() => { const e = document.querySelector('.gsmn-episode');
+    return e ? {env: e.dataset.env, text: e.innerText} : null; }"""
+
+
+def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
+    page.get_by_role("tab", name="Failures").click()
+    ids = field(page, "Or env ids")
+    ids.fill("70,71,72")
+    ids.press("Enter")
+    page.get_by_role("button", name="Evaluate", exact=True).click()
+    page.get_by_text(re.compile(r"Evaluation 1 \(3 chosen environments\)")).first.wait_for()  # its progress
+    done = wait_js(page, EVALUATION, lambda v: v and v["status"] == "finished", timeout=180,
+                   what="the evaluation to finish in the page")
+    assert "3/3 episodes" in done["text"] and "Failures by attribution" in done["text"]
+    evaluation = dashboard.jobs.db.evaluation(1)
+    assert evaluation.status == "finished" and evaluation.done == 3
+
+    rows = dashboard.jobs.db.episodes(1, failed_only=True)
+    assert rows, "an untrained model fails"
+    first = rows[0]
+    page.get_by_text(f"{len(rows)} episode").first.wait_for()
+    buttons = page.get_by_role("button", name=re.compile(r"^▶ \d+ "))
+    assert buttons.count() == len(rows)
+    assert f"{first.side} of the {first.landmark}" in buttons.first.inner_text()
+
+    # a filter: by landmark, then back to all
+    def choose(label: str, option: str, count: int) -> None:
+        field(page, label).click()
+        page.get_by_role("option", name=option, exact=True).click()
+        deadline = time.monotonic() + 30
+        while buttons.count() != count and time.monotonic() < deadline:
+            page.wait_for_timeout(100)
+        assert buttons.count() == count, f"{label} = {option}: {buttons.count()} rows shown, expected {count}"
+
+    choose("Landmark", first.landmark, sum(r.landmark == first.landmark for r in rows))
+    assert all(first.landmark in buttons.nth(k).inner_text() for k in range(buttons.count()))
+    choose("Landmark", "all", len(rows))
+
+    # pick a failure: it flies again in the live view, with its maps, and its attribution shows
+    before = dashboard.runner.episodes.all()
+    page.get_by_role("button", name=re.compile(rf"^▶ {first.env_id} ")).click()
+    detail = wait_js(page, REPLAY, lambda v: v and v["env"] == str(first.env_id), what="the episode's details")
+    assert first.attribution["reason"] in detail["text"]
+    replayed = wait_js(page, REPLAY, lambda v: "Replayed as episode" in v["text"], timeout=120,
+                       what="the replay to end")
+    assert "reproduces the evaluation" in replayed["text"], replayed["text"]
+    episode = next(e for e in dashboard.runner.episodes.all() if e not in before)
+    assert episode.env_id == first.env_id and episode.result.steps == first.steps
+    page.get_by_role("tab", name="Camera and maps").click()
+    maps = wait_js(page, MAPS, lambda v: v and v["episode"] == str(episode.id), what="the replay's maps")
+    assert maps["step"] >= 0
+    assert page.locator('.gsmn-maps img[data-layer="goal"]').count() == 1
+
+    # fine-tune on the failures selected in the browser
+    page.get_by_role("tab", name="Fine-tune").click()
+    assert field(page, "Environments").input_value() == f"failures selected in the browser ({len(rows)})"
+    page.get_by_role("button", name="Launch", exact=True).click()
+    progress = wait_js(page, "() => document.body.innerText",
+                       lambda t: re.search(r"Run 1\*?\*? \(running\): iteration \d of 2", t) is not None,
+                       timeout=180, what="the run's progress in the page")
+    assert "iteration" in progress
+    run = dashboard.jobs.db.run(1)
+    assert run.env_ids == sorted(r.env_id for r in rows) and run.source_evaluation_id == 1
+    wait_js(page, "() => document.body.innerText", lambda t: "checkpoint run-1" in t or "Run 1 failed" in t,
+            timeout=300, what="the run to finish")
+    assert dashboard.jobs.db.run(1).status == "finished", dashboard.jobs.db.run(1).error
+    assert page.locator("table.gsmn-runs tr[data-run='1'][data-status='finished']").count() == 1
+
+    # its checkpoint to switch to, and before/after on the same episodes
+    page.get_by_role("button", name="Fly with it", exact=True).click()
+    page.get_by_text("policy is now").first.wait_for()
+    assert dashboard.viewer.policy.value == "Model: run-1"
+    page.get_by_role("button", name="Before/after", exact=True).click()
+    compare = wait_js(page, """() => { const c = document.querySelector('.gsmn-compare');
+        return c ? {after: c.dataset.after, text: c.innerText} : null; }""", lambda v: v is not None, timeout=180,
+                      what="the before/after table")
+    after = dashboard.jobs.db.evaluation(int(compare["after"]))
+    assert after.status == "finished" and after.baseline_id == 1 and after.run_id == 1
+    assert "Evaluation 1 → 2" in compare["text"] and str(first.env_id) in compare["text"]
