@@ -708,7 +708,7 @@ def summarize_rows(rows: list[dict]) -> dict:
                 "mean_distance": sum(d) / n if n else math.nan, "median_distance": median}
 
     out = one(rows)
-    out["pruned"] = one([r for r in rows if not r["ambiguous"]])
+    out["pruned"] = {**one([r for r in rows if not r["ambiguous"]]), "pruned": None}
     return out
 
 

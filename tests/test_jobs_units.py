@@ -1,0 +1,168 @@
+"""The pieces of the dashboard's jobs that need no process: the SQLite record, run settings, the command-line flags
+that carry the server's configuration to a job, summaries, a run folder's progress, and the page's text."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+
+import numpy as np
+import pytest
+
+from app.commands import RunnerError
+from app.db import Database, EpisodeRow
+from app.jobs import RUN_PRESETS, _pid_runs, config_args, run_config, run_progress, run_settings, summarize_rows
+from app.jobs_view import compare_html, curve_data, episode_label, error_summary, summary_html
+from gsmn.config import preset, with_overrides
+from gsmn.task.metrics import summarize
+
+
+def episode(evaluation_id: int, position: int, env_id: int, **kw) -> EpisodeRow:
+    values = dict(evaluation_id=evaluation_id, position=position, env_id=env_id, instruction="go to the left side of "
+                  "the box", landmark="box", side="left", ambiguous=False, success=False, landmark_success=False,
+                  goal_distance=10.0, steps=40, stopped=False, final_x=1.0, final_y=2.0, stage="perception",
+                  attribution={"stage": "perception", "reason": "never seen"}, recording=None)
+    values.update(kw)
+    return EpisodeRow(**values)
+
+
+def test_the_record_keeps_evaluations_episodes_and_runs_across_reopening(tmp_path):
+    db = Database(tmp_path / "gsmn.sqlite")
+    eid = db.add_evaluation(system="gsmn", checkpoint="/c", env_ids=[70, 71, 72], label="three")
+    db.update_evaluation(eid, status="running", pid=123, command=["gsmn", "eval"], summary={"success": 50.0})
+    db.add_episode(episode(eid, 0, 70))
+    db.add_episode(episode(eid, 1, 71, landmark="car", side="back", ambiguous=True, stage="goal"))
+    db.add_episode(episode(eid, 2, 72, success=True, stage=None, attribution=None))
+    db.add_episode(episode(eid, 0, 70, goal_distance=3.0))  # written again (a monitor re-reading): replaced
+    rid = db.add_run(settings={"iterations": 2}, env_ids=[70, 71], init_checkpoint="/c", folder="/f",
+                     source_evaluation_id=eid)
+    db.update_run(rid, metrics=[{"iteration": 1}], cancel_requested=True)
+    with pytest.raises(ValueError, match="no such runs column"):
+        db.update_run(rid, colour="red")
+    db.close()
+
+    db = Database(tmp_path / "gsmn.sqlite")
+    e = db.evaluation(eid)
+    assert (e.status, e.pid, e.command, e.summary, e.env_ids, e.total) == ("running", 123, ["gsmn", "eval"],
+                                                                           {"success": 50.0}, [70, 71, 72], 3)
+    assert [x.env_id for x in db.episodes(eid)] == [70, 71, 72] and db.episode(eid, 70).goal_distance == 3.0
+    assert [x.env_id for x in db.episodes(eid, failed_only=True)] == [70, 71]
+    assert [x.env_id for x in db.episodes(eid, landmark="car")] == [71]
+    assert [x.env_id for x in db.episodes(eid, side="left", failed_only=True)] == [70]
+    assert [x.env_id for x in db.episodes(eid, ambiguous=False)] == [70, 72]
+    assert [x.env_id for x in db.episodes(eid, stage="goal")] == [71]
+    assert db.episode(eid, 71).ambiguous is True and db.episode(eid, 70).attribution["reason"] == "never seen"
+    assert db.stage_counts(eid) == {"perception": 1, "goal": 1}
+    r = db.run(rid)
+    assert r.metrics == [{"iteration": 1}] and r.cancel_requested is True and r.env_ids == [70, 71]
+    assert [x.id for x in db.runs(("queued",))] == [rid] and db.runs(("finished",)) == []
+    assert db.evaluation(999) is None and db.run(999) is None
+    db.close()
+    with sqlite3.connect(tmp_path / "gsmn.sqlite") as raw:
+        assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
+    assert run_settings("tiny") == RUN_PRESETS["tiny"]
+    s = run_settings("paper", iterations=3, learning_rate=1e-4, beta0=None)
+    assert (s.iterations, s.learning_rate, s.beta0, s.dataset_size) == (3, 1e-4, 0.92, 500)
+    for kwargs, words in (({"rollouts_per_iteration": 5, "dataset_size": 4}, "cannot exceed M"),
+                          ({"iterations": 0}, "iterations must be at least 1"), ({"beta0": 1.5}, "beta0"),
+                          ({"learning_rate": 0.0}, "learning_rate"), ({"colour": 1}, "unknown run setting")):
+        with pytest.raises(RunnerError, match=words):
+            run_settings("tiny", **kwargs)
+    with pytest.raises(RunnerError, match="unknown run preset"):
+        run_settings("huge")
+    config = run_config(with_overrides(preset("tiny"), {"task.horizon": "60"}), run_settings("tiny", beta0=0.3))
+    assert (config.dagger.iterations, config.dagger.beta0, config.task.horizon, config.train.threads) == (2, 0.3, 30, 1)
+    assert not config.camera.shadows
+
+
+def test_the_flags_a_job_gets_rebuild_the_servers_configuration_exactly():
+    from gsmn.cli import build_parser, config_from_args
+
+    config = with_overrides(preset("tiny"), {"task.horizon": "37", "train.learning_rate": "0.000123",
+                                             "dagger.beta0": "0.5", "model.channels_last": "false"})
+    flags = config_args(config)
+    assert "--camera.shadows" in flags and "--task.horizon" in flags and "--world.seed" not in flags
+    args = build_parser().parse_args(["eval", "--system", "oracle", "--split", "test", *flags])
+    assert config_from_args(args) == config
+    assert config_args(preset("paper")) == []
+
+
+def test_summaries_of_recorded_outcomes_match_the_papers_metrics():
+    rng = np.random.default_rng(0)
+    records = []
+    for k in range(9):
+        records.append({"final_x": float(rng.uniform(0, 30)), "final_y": float(rng.uniform(0, 30)), "landmark_x": 15.0,
+                        "landmark_y": 15.0, "start_x": 0.0, "start_y": 0.0, "side": ["left", "back", "front"][k % 3],
+                        "goal_x": 15.0, "goal_y": 19.0, "ambiguous": k % 4 == 0})
+    records[0].update(final_x=15.0, final_y=18.0, side="back")  # one success at least
+    from gsmn.task.metrics import goal_distance, landmark_success, success
+
+    rows = [{"success": success((r["final_x"], r["final_y"]), (15, 15), (0, 0), r["side"]),
+             "landmark_success": landmark_success((r["final_x"], r["final_y"]), (15, 15)),
+             "goal_distance": goal_distance((r["final_x"], r["final_y"]), (15, 19)), "ambiguous": r["ambiguous"]}
+            for r in records]
+    ours, theirs = summarize_rows(rows), summarize(records).to_dict()
+    for key in ("count", "success", "landmark_success", "mean_distance", "median_distance"):
+        assert ours[key] == pytest.approx(theirs[key]) and ours["pruned"][key] == pytest.approx(theirs["pruned"][key])
+    assert math.isnan(summarize_rows([])["success"])
+
+
+def test_a_run_folder_says_where_the_run_is(tmp_path):
+    from app.db import Run
+
+    row = Run(id=1, status="running", created=0, started=0, finished=None, settings={"iterations": 4}, env_ids=None,
+              source_evaluation_id=None, init_checkpoint="/c", folder=str(tmp_path), pid=None, command=None,
+              progress=None, metrics=[], checkpoint=None, error=None, cancel_requested=False)
+    p, metrics = run_progress(tmp_path, row)
+    assert p["phase"] == "expert data" and p["fraction"] == 0 and metrics == []
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    (run / "log.jsonl").write_text(json.dumps({"iteration": 1, "train": {"loss": 1.5}}) + "\n")
+    (run / "progress.json").write_text(json.dumps({"phase": "collect", "iteration": 2, "rollouts": 4, "done": 2,
+                                                   "beta": 0.8}))
+    p, metrics = run_progress(tmp_path, row)
+    assert p["phase"] == "collect" and p["fraction"] == pytest.approx((1 + 0.25) / 4, abs=1e-4)
+    assert "rollouts 2/4" in p["text"]
+    assert p["loss"] == 1.5 and len(metrics) == 1
+    (run / "progress.json").write_text(json.dumps({"phase": "train", "batch": 3, "batches": 4, "loss": 0.9}))
+    p, _ = run_progress(tmp_path, row)
+    assert p["fraction"] == pytest.approx((1 + 0.5 + 0.5 * 0.75) / 4, abs=1e-4) and "batch 3/4, loss 0.900" in p["text"]
+
+
+def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
+    assert _pid_runs(os.getpid(), "python") or _pid_runs(os.getpid(), "pytest")
+    assert not _pid_runs(os.getpid(), "/no/such/job/folder")
+    assert not _pid_runs(None, "x") and not _pid_runs(2**22 + 12345, "x")
+
+
+def test_the_pages_text():
+    e = episode(1, 0, 73, success=False, goal_distance=14.25, stage="grounding", side="left", landmark="pumpkin")
+    assert episode_label(e) == "▶ 73 ✗ left of the pumpkin · 14.2 m · grounding"
+    assert error_summary("its process exited with status 1; its output ends:\nTraceback\n  File x\nValueError: bad") \
+        == "its process exited with status 1: ValueError: bad"
+    assert error_summary(None) == "" and error_summary("cancelled") == "cancelled"
+    from app.db import Evaluation
+
+    ev = Evaluation(id=2, status="finished", created=0, started=0, finished=0, system="gsmn", checkpoint="/c",
+                    env_ids=[1, 2], label="x", baseline_id=None, run_id=None, source="dashboard", folder=None,
+                    pid=None, command=None, done=2, total=2, summary={"success": 50.0, "landmark_success": 50.0,
+                                                                      "mean_distance": 3.0}, error=None,
+                    cancel_requested=False)
+    html = summary_html(ev, {"perception": 1, "goal": 2})
+    assert "2/2" in html and "50 %" in html and 'data-stage="goal"' in html and "Failures by attribution (3)" in html
+    it, loss, action, learner = curve_data([{"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5},
+                                             "learner_step_fraction": 0.1}, {"iteration": 2, "train": {"loss": 1.0}}])
+    assert list(it) == [1, 2] and list(loss) == [2.0, 1.0] and math.isnan(action[1])
+    brief = {"success": False, "goal_distance": 5.0, "stage": "goal", "landmark_success": False, "steps": 3,
+             "stopped": True}
+    c = {"before": 1, "after": 2, "episodes": [{"env_id": 7, "instruction": "i", "before": brief,
+                                                "after": {**brief, "success": True, "stage": None}}],
+         "fixed": 1, "broken": 0, "before_success": 0.0, "after_success": 100.0, "before_mean_distance": 5.0,
+         "after_mean_distance": 5.0}
+    assert "0 % → 100 %" in compare_html(c, None) and "1 fixed" in compare_html(c, None)
