@@ -1,8 +1,8 @@
 """Model speed on this machine: inference per step at batch 1 and training throughput (docs/model.md).
 
-Inference: what `ModelPolicy.act` does each step (perceive + ground + controller for GSMN; features, filters and
-perceptron for the baselines), under torch.inference_mode, from a uint8 camera image; in float32 and with the
-opt-in bfloat16 ResNet (`model.inference_bf16`). Training: forward +
+Inference: `ModelPolicy.act` itself, from a camera observation (uint8 image, numpy poses) to the action
+(perceive + ground + controller for GSMN; features, filters and perceptron for the baselines), in float32 and
+with the opt-in bfloat16 ResNet (`model.inference_bf16`). Training: forward +
 backward + Adam step on a batch of B sequences of T steps (frames = B*T), with every objective. Medians of
 several timed runs after warm-up. Inputs are random images with plausible camera poses: speed does not depend
 on the pixels.
@@ -20,6 +20,7 @@ import dataclasses
 import math
 import statistics
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -27,7 +28,11 @@ import torch
 from gsmn.config import LossConfig, preset
 from gsmn.model import Vocabulary, build_model, compute_losses, forward_batch
 from gsmn.model.batch import Batch
+from gsmn.model.policy import ModelPolicy
 from gsmn.model.runtime import keep_freed_memory
+from gsmn.world.env import Observation, Pose
+
+INSTRUCTION = "go to the left side of the red barrel"
 
 
 def camera_pose(x: float, y: float, yaw: float, altitude: float = 5.0, pitch_deg: float = 27.0) -> np.ndarray:
@@ -46,7 +51,7 @@ def random_batch(B: int, T: int, vocabulary: Vocabulary, rng: np.random.Generato
     poses = np.stack([np.stack([rng.uniform(0, 30, T), rng.uniform(0, 30, T), rng.uniform(-3, 3, T)], -1)
                       for _ in range(B)]).astype(np.float32)  # (B, T, 3)
     T_world_camera = np.array([[camera_pose(*p) for p in seq] for seq in poses], dtype=np.float32)
-    ids = vocabulary.encode("go to the left side of the red barrel")
+    ids = vocabulary.encode(INSTRUCTION)
     M = 8
     return Batch(
         images=torch.from_numpy(rng.integers(0, 256, (B, T, 144, 256, 3), dtype=np.uint8)),
@@ -76,19 +81,24 @@ def median_time(fn, repeats: int, warmup: int = 2) -> float:
 
 
 def bench_inference(kind: str, config, vocabulary: Vocabulary, repeats: int) -> float:
-    """Seconds per policy step at batch 1 (median over `repeats` episodes' mean step time)."""
+    """Seconds per `ModelPolicy.act` at batch 1 (median over `repeats` 20-step episodes' mean step time): the
+    policy's own call from a camera observation (numpy) to the action, as evaluation and the dashboard make it."""
     model = build_model(kind, config, vocabulary).eval()
     batch = random_batch(1, 20, vocabulary, np.random.default_rng(0))
-    with torch.inference_mode():
-        e = model.encode_instruction(batch.tokens, batch.lengths)
+    policy = ModelPolicy(model, vocabulary, config)
+    task = SimpleNamespace(world=SimpleNamespace(env_id=0), instruction=SimpleNamespace(text=INSTRUCTION))
+    observations = [Observation(image=batch.images[0, t].numpy(), T_world_camera=batch.T_world_camera[0, t].numpy(),
+                                K=batch.K[0].numpy(), step=t, time=0.2 * t,
+                                pose=Pose(position=np.array([*batch.poses[0, t, :2].tolist(), 5.0]),
+                                          yaw=float(batch.poses[0, t, 2]), R_world_body=np.eye(3)))
+                    for t in range(batch.steps)]
 
-        def episode():
-            state = None
-            for t in range(batch.steps):
-                _, state = model.step(batch.images[:, t], batch.T_world_camera[:, t], batch.K, batch.poses[:, t], e,
-                                      state)
+    def episode():
+        policy.reset(task)
+        for obs in observations:
+            policy.act(obs)
 
-        return median_time(episode, repeats) / batch.steps
+    return median_time(episode, repeats) / batch.steps
 
 
 def bench_training(kind: str, config, vocabulary: Vocabulary, B: int, T: int, repeats: int) -> float:

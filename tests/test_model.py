@@ -231,6 +231,25 @@ def test_grounding_a_new_instruction_on_a_stored_map_equals_a_full_forward(episo
     assert not torch.allclose(first.relevance_map_w, full.relevance_map_w)
 
 
+@pytest.mark.parametrize("kind", ["gsmn", "gs-fpv"])
+def test_instruction_kernels_made_beforehand_change_nothing(episodes, kind):
+    """The policy makes the language kernels once per episode; a step given them equals one that makes them."""
+    sample = subsample(episodes[0][0], 3)
+    b = collate([sample], VOCABULARY)
+    model = seeded_model(kind).eval()
+    with torch.inference_mode():
+        e = model.encode_instruction(b.tokens, b.lengths)
+        kernels = model.instruction_kernels(e)
+        state_a = state_b = None
+        for t in range(b.steps):
+            args = (b.images[:, t], b.T_world_camera[:, t], b.K, b.poses[:, t], e)
+            a, state_a = model.step(*args, state_a)
+            c, state_b = model.step(*args, state_b, kernels=kernels)
+            for name, value in a.maps().items():
+                assert torch.equal(value, c.maps()[name]), name
+            assert torch.equal(a.v, c.v) and torch.equal(a.omega, c.omega) and torch.equal(a.stop_logit, c.stop_logit)
+
+
 @pytest.mark.parametrize("kind", ["gsmn", "gs-fpv-mem"])
 def test_policy_step_by_step_equals_the_sequence_forward(episodes, kind):
     sample, observations, task = episodes[0]

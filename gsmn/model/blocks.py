@@ -49,6 +49,7 @@ class ResidualBlock(nn.Module):
         self.skip = nn.AvgPool2d(3, stride=stride, padding=1) if pooled else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.leaky_relu(self.conv1(instance_norm(x)), self.slope)
-        y = F.leaky_relu(self.conv2(instance_norm(y)), self.slope)
+        # In place on the convolutions' fresh outputs (autograd keeps LeakyReLU's output, which is all it needs).
+        y = F.leaky_relu(self.conv1(instance_norm(x)), self.slope, inplace=True)
+        y = F.leaky_relu(self.conv2(instance_norm(y)), self.slope, inplace=True)
         return self.skip(x) + y

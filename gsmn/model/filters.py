@@ -8,11 +8,14 @@ Goal: two cascaded 3x3 convolutions whose kernels come from the instruction,
 W ~ N(0, 0.001) and b = 0 at init, so every kernel starts uniform (original code).
 
 Each sample has its own kernels. Inputs may carry extra leading dimensions after the batch, e.g. (B, T, C, H, W)
-for a sequence sharing one instruction: the 1x1 filter is a batched einsum, the 3x3 filters a grouped
-convolution with one group per sample.
+for a sequence sharing one instruction: the 1x1 filter is a batched matrix product, the 3x3 filters a grouped
+convolution with one group per sample. Making the kernels (`kernels`) and applying them (`forward`) are apart:
+the kernels depend on the instruction only, so a policy makes them once per episode (`InstructionKernels`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
@@ -42,9 +45,12 @@ class RelevanceFilter(nn.Module):
         k = F.normalize(torch.sigmoid(self.linear(sentence_embedding)), dim=-1)
         return k.view(-1, self.channels_out, self.channels_in)
 
-    def forward(self, maps: torch.Tensor, sentence_embedding: torch.Tensor) -> torch.Tensor:
-        k = self.kernels(sentence_embedding)
-        return F.leaky_relu(torch.einsum("boc,b...chw->b...ohw", k, maps), self.slope)
+    def forward(self, maps: torch.Tensor, kernels: torch.Tensor) -> torch.Tensor:
+        """Maps (B, ..., C_in, H, W) through this filter's `kernels(e)` (B, C_out, C_in)."""
+        B, lead, (H, W) = maps.shape[0], maps.shape[1:-3], maps.shape[-2:]
+        k = kernels.view(B, *(1,) * len(lead), self.channels_out, self.channels_in)  # broadcast over lead dims
+        out = torch.matmul(k, maps.flatten(-2))  # (B, ..., C_out, H*W); a batched einsum, with less overhead
+        return F.leaky_relu(out.view(B, *lead, self.channels_out, H, W), self.slope)
 
 
 class GoalFilter(nn.Module):
@@ -66,15 +72,29 @@ class GoalFilter(nn.Module):
         k2 = F.normalize(k2, dim=-1).view(-1, self.channels_out, self.channels_in, 3, 3)
         return k1, k2
 
-    def forward(self, maps: torch.Tensor, sentence_embedding: torch.Tensor) -> torch.Tensor:
-        k1, k2 = self.kernels(sentence_embedding)
+    def forward(self, maps: torch.Tensor, kernels: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """Maps (B, ..., C_r, H, W) through this filter's `kernels(e)` (K1, K2)."""
+        k1, k2 = kernels
         B, H, W = maps.shape[0], maps.shape[-2], maps.shape[-1]
         lead = maps.shape[1:-3]  # extra leading dims shared by one sample's kernels
         x = maps.reshape(B, -1, self.channels_in, H, W).transpose(0, 1)  # (N, B, C_r, H, W)
         x = x.reshape(-1, B * self.channels_in, H, W)  # (N, B*C_r, H, W): one group per sample
         x = F.conv2d(x, k1.reshape(B * self.channels_in, self.channels_in, 3, 3), padding=1, groups=B)
-        x = instance_norm(F.leaky_relu(x, self.slope))
+        x = instance_norm(F.leaky_relu(x, self.slope, inplace=True))
         x = F.conv2d(x, k2.reshape(B * self.channels_out, self.channels_in, 3, 3), padding=self.dilation,
                      dilation=self.dilation, groups=B)  # (N, B*C_g, H, W)
         x = x.reshape(-1, B, self.channels_out, H, W).transpose(0, 1)  # (B, N, C_g, H, W)
         return x.reshape(B, *lead, self.channels_out, H, W)
+
+
+@dataclass(frozen=True)
+class InstructionKernels:
+    """The language-conditioned kernels of B instructions: what the filters make of the sentence embeddings."""
+
+    relevance: torch.Tensor  # (B, C_r, C_f) 1x1 kernels
+    goal: tuple[torch.Tensor, torch.Tensor]  # K1 (B, C_r, C_r, 3, 3), K2 (B, C_g, C_r, 3, 3)
+
+    @staticmethod
+    def of(relevance_filter: RelevanceFilter, goal_filter: GoalFilter, sentence_embedding: torch.Tensor
+           ) -> InstructionKernels:
+        return InstructionKernels(relevance_filter.kernels(sentence_embedding), goal_filter.kernels(sentence_embedding))

@@ -23,6 +23,7 @@ import torch.nn as nn
 
 from gsmn.config import RunConfig
 from gsmn.model.controller import DensePerceptron, split_actions
+from gsmn.model.filters import InstructionKernels
 from gsmn.model.grid import MapGeometry
 from gsmn.model.gsmn import add_shared_modules
 from gsmn.model.heads import AuxiliaryHeads
@@ -74,13 +75,19 @@ class GSFPV(nn.Module):
     def encode_instruction(self, tokens: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         return self.encoder(tokens, lengths)
 
-    def _run(self, images: torch.Tensor, poses: torch.Tensor, sentence_embedding: torch.Tensor, state: MemoryState
-             ) -> tuple[FPVOutputs, MemoryState]:
+    def instruction_kernels(self, sentence_embedding: torch.Tensor) -> InstructionKernels:
+        """The relevance and goal filters' kernels for sentence embeddings (B, E)."""
+        return InstructionKernels.of(self.relevance_filter, self.goal_filter, sentence_embedding)
+
+    def _run(self, images: torch.Tensor, poses: torch.Tensor, sentence_embedding: torch.Tensor, state: MemoryState,
+             kernels: InstructionKernels | None = None) -> tuple[FPVOutputs, MemoryState]:
         B, T = images.shape[:2]
+        if kernels is None:
+            kernels = self.instruction_kernels(sentence_embedding)
         features_c = self.resnet(standardise(images.reshape(B * T, *images.shape[2:])))  # (B*T, C_f, h, w)
         features_c = features_c.reshape(B, T, *features_c.shape[1:])
-        relevance_c = self.relevance_filter(features_c, sentence_embedding)  # (B, T, 3, h, w)
-        goal_c = self.goal_filter(relevance_c, sentence_embedding)  # (B, T, 2, h, w)
+        relevance_c = self.relevance_filter(features_c, kernels.relevance)  # (B, T, 3, h, w)
+        goal_c = self.goal_filter(relevance_c, kernels.goal)  # (B, T, 2, h, w)
         x = torch.cat([relevance_c, goal_c], dim=2).flatten(2)  # (B, T, 2880)
         extra = sentence_embedding[:, None].expand(B, T, sentence_embedding.shape[-1])
         memory = None
@@ -99,7 +106,7 @@ class GSFPV(nn.Module):
         return outputs
 
     def step(self, image: torch.Tensor, T_world_camera: torch.Tensor, K: torch.Tensor, poses: torch.Tensor,
-             sentence_embedding: torch.Tensor, state: MemoryState, generator: torch.Generator | None = None
-             ) -> tuple[FPVOutputs, MemoryState]:
+             sentence_embedding: torch.Tensor, state: MemoryState, generator: torch.Generator | None = None,
+             kernels: InstructionKernels | None = None) -> tuple[FPVOutputs, MemoryState]:
         """One step for B drones (see GSMN.step); the state is the LSTM's (h, c), None at the first step."""
-        return self._run(image[:, None], poses[:, None], sentence_embedding, state)
+        return self._run(image[:, None], poses[:, None], sentence_embedding, state, kernels)

@@ -79,13 +79,21 @@ class FrameTransform(nn.Module):
         grid = (base @ theta.transpose(1, 2)).view(-1, size, size, 2)  # (N, size, size, 2), as affine_grid
         return F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
+    def to_robot(self, map_w: torch.Tensor, theta_world_robot: torch.Tensor) -> torch.Tensor:
+        """World maps (N, C, n, n) -> robot maps (N, C, 2n, 2n), given the first matrix of `thetas(poses)`."""
+        return self._resample(map_w, theta_world_robot, self.robot_grid, self.geometry.robot_map_size)
+
+    def to_world(self, map_r: torch.Tensor, theta_robot_world: torch.Tensor) -> torch.Tensor:
+        """Robot maps (N, C, 2n, 2n) -> world maps (N, C, n, n), given the second matrix of `thetas(poses)`."""
+        return self._resample(map_r, theta_robot_world, self.world_grid, self.geometry.map_size)
+
     def world_to_robot(self, map_w: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """World maps (N, C, n, n) -> robot maps (N, C, 2n, 2n) around poses (N, 3) = x, y, yaw."""
-        return self._resample(map_w, self.thetas(poses)[0], self.robot_grid, self.geometry.robot_map_size)
+        return self.to_robot(map_w, self.thetas(poses)[0])
 
     def robot_to_world(self, map_r: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Robot maps (N, C, 2n, 2n) -> world maps (N, C, n, n)."""
-        return self._resample(map_r, self.thetas(poses)[1], self.world_grid, self.geometry.map_size)
+        return self.to_world(map_r, self.thetas(poses)[1])
 
 
 def world_to_robot_theta(poses: torch.Tensor, geometry: MapGeometry) -> torch.Tensor:

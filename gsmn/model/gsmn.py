@@ -15,7 +15,8 @@ pure: perception and projection run batched over all B*T steps, only the leaky i
 step-level pieces serve the policy and the dashboard: `perceive` (image -> updated semantic map, independent of
 the instruction) and `ground` (semantic map + pose + instruction -> maps and action), so a new instruction can
 be grounded on an existing map without flying again. `step` = `perceive` + `ground`, with the semantic map as
-the carried state.
+the carried state. The language-conditioned kernels depend on the instruction only: `instruction_kernels` makes
+them once, and `ground` and `step` take them instead of remaking them at every step (the policy does this).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import torch.nn as nn
 
 from gsmn.config import ModelConfig, RunConfig
 from gsmn.model.controller import MapController, split_actions
-from gsmn.model.filters import GoalFilter, RelevanceFilter
+from gsmn.model.filters import GoalFilter, InstructionKernels, RelevanceFilter
 from gsmn.model.frames import FrameTransform
 from gsmn.model.grid import MapGeometry
 from gsmn.model.heads import AuxiliaryHeads
@@ -125,6 +126,10 @@ class GSMN(nn.Module):
         """Token ids (B, L), lengths (B,) -> sentence embeddings (B, E)."""
         return self.encoder(tokens, lengths)
 
+    def instruction_kernels(self, sentence_embedding: torch.Tensor) -> InstructionKernels:
+        """The relevance and goal filters' kernels for sentence embeddings (B, E)."""
+        return InstructionKernels.of(self.relevance_filter, self.goal_filter, sentence_embedding)
+
     def perturb(self, poses: torch.Tensor, T_world_camera: torch.Tensor, generator: torch.Generator | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """The poses the model sees: with the configured pose noise, else unchanged."""
@@ -149,23 +154,27 @@ class GSMN(nn.Module):
         return PerceptionOutputs(features_c, projected_w, coverage_w, semantic_map_w)
 
     def ground(self, semantic_map_w: torch.Tensor, poses: torch.Tensor, sentence_embedding: torch.Tensor | None = None,
-               tokens: torch.Tensor | None = None, lengths: torch.Tensor | None = None) -> GroundingOutputs:
+               tokens: torch.Tensor | None = None, lengths: torch.Tensor | None = None,
+               kernels: InstructionKernels | None = None) -> GroundingOutputs:
         """Ground an instruction on semantic maps (B, [T,] C_f, n, n) seen from poses (B, [T,] 3) = x, y, yaw.
 
-        Give the instruction as its sentence embedding (B, E) or as token ids (B, L) with lengths (B,)."""
+        Give the instruction as its sentence embedding (B, E) or as token ids (B, L) with lengths (B,);
+        `kernels`, if given, are `instruction_kernels(sentence_embedding)` made beforehand."""
         if sentence_embedding is None:
             if tokens is None or lengths is None:
                 raise ValueError("ground needs a sentence_embedding or tokens and lengths")
             sentence_embedding = self.encode_instruction(tokens, lengths)
+        if kernels is None:
+            kernels = self.instruction_kernels(sentence_embedding)
         B, lead = semantic_map_w.shape[0], semantic_map_w.shape[1:-3]
         n_per = int(torch.Size(lead).numel())  # steps per sample (1 without a T dimension)
-        relevance_w = self.relevance_filter(semantic_map_w, sentence_embedding)  # (B, [T,] 3, n, n)
-        flat_poses = poses.reshape(B * n_per, 3)
-        relevance_r = self.frames.world_to_robot(relevance_w.reshape(B * n_per, *relevance_w.shape[-3:]),
-                                                 flat_poses)  # (B*T, 3, 2n, 2n)
-        goal_r = self.goal_filter(relevance_r.reshape(B, n_per, *relevance_r.shape[1:]), sentence_embedding)
+        relevance_w = self.relevance_filter(semantic_map_w, kernels.relevance)  # (B, [T,] 3, n, n)
+        theta_world_robot, theta_robot_world = self.frames.thetas(poses.reshape(B * n_per, 3))  # both ways at once
+        relevance_r = self.frames.to_robot(relevance_w.reshape(B * n_per, *relevance_w.shape[-3:]),
+                                           theta_world_robot)  # (B*T, 3, 2n, 2n)
+        goal_r = self.goal_filter(relevance_r.reshape(B, n_per, *relevance_r.shape[1:]), kernels.goal)
         goal_r = goal_r.reshape(B * n_per, *goal_r.shape[2:])  # (B*T, 2, 2n, 2n)
-        goal_w = self.frames.robot_to_world(goal_r, flat_poses)  # (B*T, 2, n, n)
+        goal_w = self.frames.to_world(goal_r, theta_robot_world)  # (B*T, 2, n, n)
         extra = None
         if self.config.model.controller_uses_instruction:
             extra = sentence_embedding.repeat_interleave(n_per, dim=0)
@@ -203,14 +212,14 @@ class GSMN(nn.Module):
 
     # -- the policy's step interface -------------------------------------------------------------------------
     def step(self, image: torch.Tensor, T_world_camera: torch.Tensor, K: torch.Tensor, poses: torch.Tensor,
-             sentence_embedding: torch.Tensor, state: torch.Tensor | None, generator: torch.Generator | None = None
-             ) -> tuple[GSMNOutputs, torch.Tensor]:
+             sentence_embedding: torch.Tensor, state: torch.Tensor | None, generator: torch.Generator | None = None,
+             kernels: InstructionKernels | None = None) -> tuple[GSMNOutputs, torch.Tensor]:
         """One step for B drones: image (B, H, W, 3), T_world_camera (B, 4, 4), K, poses (B, 3), sentence
-        embeddings (B, E), and the carried state (the semantic map, None at the first step).
-        Returns the step's outputs as a GSMNOutputs with T = 1, and the new state."""
+        embeddings (B, E) (and optionally their `instruction_kernels`), and the carried state (the semantic map,
+        None at the first step). Returns the step's outputs as a GSMNOutputs with T = 1, and the new state."""
         poses, T_world_camera = self.perturb(poses, T_world_camera, generator)
         p = self.perceive(image, T_world_camera, K, state)
-        g = self.ground(p.semantic_map_w, poses, sentence_embedding)
+        g = self.ground(p.semantic_map_w, poses, sentence_embedding, kernels=kernels)
 
         def seq(x: torch.Tensor) -> torch.Tensor:
             return x.unsqueeze(1)

@@ -1,10 +1,11 @@
 """A trained model as a `gsmn.task.rollout.Policy` (paper: Model Architecture, "at each step j, the network takes
 the agent context (instruction, image, pose) and predicts the next action").
 
-The policy object holds the runtime state, the network stays pure: the sentence embedding (computed once per
-episode), the carried state (GSMN: the semantic map; GS-FPV-MEM: the LSTM state) and the last step's outputs
-record (`last_outputs`, a GSMNOutputs or FPVOutputs with B = T = 1) for the dashboard. Actions come out in SI
-units: v * 1.6 m/s, omega * 2.44 rad/s (the drone's limits), STOP when sigmoid(stop_logit) > 0.5.
+The policy object holds the runtime state, the network stays pure: the sentence embedding and the language
+filters' kernels (made once per episode), the carried state (GSMN: the semantic map; GS-FPV-MEM: the LSTM
+state) and the last step's outputs record (`last_outputs`, a GSMNOutputs or FPVOutputs with B = T = 1) for the
+dashboard. Actions come out in SI units: v * 1.6 m/s, omega * 2.44 rad/s (the drone's limits), STOP when
+sigmoid(stop_logit) > 0.5.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import torch
 
 from gsmn.config import RunConfig
+from gsmn.model.filters import InstructionKernels
 from gsmn.model.gsmn import GSMN, GroundingOutputs
 from gsmn.model.models import Model, Outputs
 from gsmn.model.vocabulary import Vocabulary
@@ -30,6 +32,7 @@ class ModelPolicy:
         self.config = config or model.config
         self.name = name or model.kind
         self.sentence_embedding: torch.Tensor | None = None
+        self.kernels: InstructionKernels | None = None
         self.state = None
         self.last_outputs: Outputs | None = None
         self.generator = torch.Generator()
@@ -38,6 +41,8 @@ class ModelPolicy:
         self.model.eval()
         self.generator.manual_seed(task.world.env_id)  # pose noise, when configured, repeats per environment
         self.sentence_embedding = self.embed(task.instruction.text)
+        with torch.inference_mode():
+            self.kernels = self.model.instruction_kernels(self.sentence_embedding)
         self.state = None
         self.last_outputs = None
 
@@ -59,7 +64,7 @@ class ModelPolicy:
             p = obs.pose.position
             poses = torch.tensor([[p[0], p[1], obs.pose.yaw]], dtype=torch.float32)
             outputs, self.state = self.model.step(image, T_world_camera, K, poses, self.sentence_embedding,
-                                                  self.state, self.generator)
+                                                  self.state, self.generator, self.kernels)
         self.last_outputs = outputs
         drone = self.config.drone
         return PolicyAction(forward_velocity=float(outputs.v[0, 0]) * drone.max_forward_velocity,

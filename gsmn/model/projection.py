@@ -50,13 +50,12 @@ def ground_grid(T_world_camera: torch.Tensor, K: torch.Tensor, geometry: MapGeom
     if points_w is None:
         points_w = ground_points(geometry).to(T_world_camera)
     n = geometry.map_size
-    P = K @ invert_rigid(T_world_camera)[:, :3, :]  # (N, 3, 4) camera matrix K [R^T | -R^T t]
+    # The camera matrix K [R^T | -R^T t] with K's rows scaled to grid_sample units (u -> 2 u / W), (N, 3, 4)
+    P = (K * K.new_tensor([[2.0 / W], [2.0 / H], [1.0]])) @ invert_rigid(T_world_camera)[:, :3, :]
     uvw = points_w @ P.transpose(1, 2)  # (N, n*n, 3); uvw[..., 2] is the depth along the optical axis
     depth = uvw[..., 2:]
-    in_front = depth > _MIN_DEPTH
-    uv = uvw[..., :2] / torch.where(in_front, depth, torch.ones_like(depth))
-    grid = (uv * uv.new_tensor([2.0 / W, 2.0 / H]) - 1.0).clamp(-2 * abs(_OUTSIDE), 2 * abs(_OUTSIDE))
-    grid = torch.where(in_front, grid, torch.full_like(grid, _OUTSIDE))
+    grid = (uvw[..., :2] / depth - 1.0).clamp(-2 * abs(_OUTSIDE), 2 * abs(_OUTSIDE))  # inf or NaN behind: replaced
+    grid = torch.where(depth > _MIN_DEPTH, grid, _OUTSIDE)
     return grid.view(-1, n, n, 2)
 
 
