@@ -242,8 +242,9 @@ class JobManager:
     # -- evaluations ---------------------------------------------------------------------------------------------
     def start_evaluation(self, checkpoint: str | None = None, system: str | None = None, split: str | None = None,
                          episodes: int | None = None, env_ids: list[int] | None = None,
-                         baseline_id: int | None = None, run_id: int | None = None) -> Evaluation:
-        """Launch `gsmn eval` on a split (its first `episodes`), a list of ids, or the ids of `baseline_id`."""
+                         baseline_id: int | None = None, run_id: int | None = None, workers: int = 1) -> Evaluation:
+        """Launch `gsmn eval` on a split (its first `episodes`), a list of ids, or the ids of `baseline_id`, in
+        `workers` processes of one torch thread each."""
         from gsmn.world.spec import SPLITS, split_env_ids
 
         system = system or "gsmn"
@@ -281,6 +282,8 @@ class JobManager:
             raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids, got {len(ids)}")
         if len(set(ids)) != len(ids):
             raise RunnerError("environment ids repeat")
+        if not 1 <= workers <= 16:
+            raise RunnerError(f"workers must be between 1 and 16, got {workers}")
         with self._lock:
             self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
             eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,
@@ -291,7 +294,7 @@ class JobManager:
             (folder / "config.json").write_text(self.config.to_json() + "\n")
             command = [self.python, "-m", "gsmn.cli", "eval", "--system", system,
                        *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
-                       "--env-ids", ",".join(map(str, ids)), "--workers", "1", "--threads", "1",
+                       "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
                        "--record", str(folder / "episodes"), "--progress", str(folder / "progress.jsonl"),
                        "--json", str(folder / "results.json"), *config_args(self.config)]
             self._launch("evaluation", eid, folder, command)

@@ -34,6 +34,8 @@ class EvaluationRequest(_Strict):
     baseline_id: int | None = Field(None, ge=1, description="rerun the episodes of this evaluation (before/after); "
                                     "also the default environments")
     run_id: int | None = Field(None, ge=1, description="evaluate this finished fine-tuning run's checkpoint")
+    workers: int = Field(1, ge=1, le=16, description="worker processes (one core each; 1 leaves the live view "
+                         "its share)")
 
 
 class ImportRequest(_Strict):
@@ -173,7 +175,7 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
                 raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
             checkpoint = run.checkpoint
         e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
-                                  request.baseline_id, request.run_id)
+                                  request.baseline_id, request.run_id, request.workers)
         return evaluation_model(jobs, e)
 
     @app.get("/api/evaluations", response_model=list[EvaluationModel], summary="Every evaluation recorded")
