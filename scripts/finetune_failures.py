@@ -119,7 +119,7 @@ def fmt(v, unit: str = " %") -> str:
 
 
 def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
-    """Success, landmark success and attribution counts, before and after, for each set of episodes."""
+    """Success and landmark success, mean distance, and failures by attribution, before and after, for each set."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -127,29 +127,34 @@ def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
 
     stages = ("perception", "grounding", "goal", "control")
     colours = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b"}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    labels, x = [], 0
-    for name, before, after in rows:
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    ticks, names = [], []
+    for g, (name, before, after) in enumerate(rows):
         for k, e in enumerate((before, after)):
+            x = 2.6 * g + k
             s = e["summary"] or {}
-            axes[0].bar(x + k * 0.38, s.get("success") or 0, 0.36, color="#1e8449" if k else "#9bd3ae")
-            axes[0].bar(x + k * 0.38, (s.get("landmark_success") or 0) - (s.get("success") or 0), 0.36,
-                        bottom=s.get("success") or 0, color="#d5e8d4", edgecolor="#9bd3ae")
+            ok, lm = s.get("success") or 0.0, s.get("landmark_success") or 0.0
+            axes[0].bar(x, lm, 0.8, color="#cfe8d8", edgecolor="#1e8449", label="landmark success" if x == 0 else None)
+            axes[0].bar(x, ok, 0.8, color="#1e8449", label="success" if x == 0 else None)
+            axes[1].bar(x, s.get("mean_distance") or 0.0, 0.8, color="#7f8c8d" if k == 0 else "#34495e")
             bottom = 0
             for stage in stages:
                 n = e["stages"].get(stage, 0)
-                axes[1].bar(x + k * 0.38, n, 0.36, bottom=bottom, color=colours[stage],
-                            label=stage if (x, k) == (0, 0) else None, alpha=0.55 if not k else 1.0)
+                axes[2].bar(x, n, 0.8, bottom=bottom, color=colours[stage], label=stage if x == 0 else None)
                 bottom += n
-        labels.append((x + 0.19, name))
-        x += 1
+            ticks.append(x)
+            names.append(f"{'before' if k == 0 else 'after'}\n{name.split(' (')[0]}")
     for ax in axes:
-        ax.set_xticks([p for p, _ in labels], [n for _, n in labels])
+        ax.set_xticks(ticks, names, fontsize=8)
+    axes[0].set_ylim(0, 100)
     axes[0].set_ylabel("% of episodes")
-    axes[0].set_title("Success (dark) and landmark success, before | after")
-    axes[1].set_ylabel("failures")
-    axes[1].set_title("Failures by attribution, before | after")
-    axes[1].legend(fontsize=8, loc="upper right")
+    axes[0].set_title("Success and landmark success")
+    axes[0].legend(fontsize=8)
+    axes[1].set_ylabel("m")
+    axes[1].set_title("Mean distance to the goal")
+    axes[2].set_ylabel("failed episodes")
+    axes[2].set_title("Failures by attribution")
+    axes[2].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
 
