@@ -381,8 +381,14 @@ class JobManager:
             folder = self.root / "runs" / f"{rid:04d}"
             folder.mkdir(parents=True, exist_ok=True)
             self.db.update_run(rid, folder=str(folder))
-            store = Path(settings.expert_data) if settings.expert_data else \
-                self.root / "expert" / expert_store_key(config)
+            # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
+            # chosen environments, in the run's folder; else the train split's, shared by runs with the same settings
+            if settings.expert_data:
+                store = Path(settings.expert_data)
+            elif env_ids is not None:
+                store = folder / "expert"
+            else:
+                store = self.root / "expert" / expert_store_key(config)
             flags = config_args(config)
             parts = []
             if settings.expert_data is None:
