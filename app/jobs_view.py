@@ -279,9 +279,9 @@ class JobsView(RunnerListener):
         label = f"failures selected in the browser ({len(failures)})"
         options = (ENV_TRAIN, label) if failures else (ENV_TRAIN,)
         if tuple(self.run_envs.options) != options:
-            was_failures = self.run_envs.value != ENV_TRAIN
+            chose_train = len(self.run_envs.options) > 1 and self.run_envs.value == ENV_TRAIN  # keep that choice
             self.run_envs.options = options
-            self.run_envs.value = label if (was_failures or len(options) > 1) and failures else ENV_TRAIN
+            self.run_envs.value = ENV_TRAIN if chose_train or not failures else label
         self._selected_failures = failures
 
     def _show_rows(self) -> None:

@@ -65,9 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix="gsmn-shots-"))
-    checkpoint = a.checkpoint or make_untrained_checkpoint(tmp / "gsmn", preset_name=a.preset)
-    dashboard = Dashboard(preset(a.preset), checkpoint=checkpoint, port=0, api_port=0, data_dir=tmp / "data",
-                          checkpoints_root=tmp / "none")
+    checkpoint = Path(a.checkpoint or make_untrained_checkpoint(tmp / "checkpoints" / "gsmn", preset_name=a.preset))
+    dashboard = Dashboard(preset(a.preset), checkpoint=checkpoint.name, port=0, api_port=0, data_dir=tmp / "data",
+                          checkpoints_root=checkpoint.parent)  # by name: the page lists it as "gsmn"
     try:
         with playwright_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
@@ -86,12 +86,14 @@ def main(argv: list[str] | None = None) -> int:
                  what="the evaluation")
             page.get_by_text(f"{a.episodes}/{a.episodes} episodes").first.wait_for()
             failures = dashboard.jobs.db.episodes(1, failed_only=True)
-            pick = max(failures, key=lambda r: r.steps)  # a long flight, to catch it mid-way
+            long = [r for r in failures if r.steps >= 60] or failures  # a long flight, to catch it mid-way ...
+            pick = min(long, key=lambda r: r.goal_distance)  # ... that stays near the field
             field(page, "Relevance map").click()
             dashboard.runner.call(SetSpeed(5.0))
             page.get_by_role("button", name=re.compile(rf"^▶ {pick.env_id} ")).click()
             wait(lambda: dashboard.runner.live is not None and len(dashboard.runner.live.steps) >= min(
                 45, pick.steps // 2), what="the replay mid-flight")
+            page.locator(".gsmn-episode").scroll_into_view_if_needed()
             page.wait_for_timeout(500)
             dismiss_notifications(page)
             page.mouse.move(700, 900)
@@ -120,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
             page.wait_for_function("() => !!document.querySelector('.gsmn-compare')")
             page.get_by_role("button", name="Fly with it", exact=True).click()
             page.wait_for_timeout(1500)
+            page.locator(".gsmn-compare").scroll_into_view_if_needed()
+            page.wait_for_timeout(500)
             dismiss_notifications(page)
             page.screenshot(path=str(out / "dashboard_before_after.png"))
             print(f"wrote {out / 'dashboard_before_after.png'}")

@@ -243,6 +243,12 @@ def test_a_run_whose_process_is_killed_is_marked_failed_and_the_server_keeps_ser
     assert final["status"] == "failed" and "SIGKILL" in final["error"]
     assert serve.proc.poll() is None and client.get("/api/health").json()["status"] == "ok"
     assert not group_alive(pid)
+    from gsmn.model.checkpoint import load_checkpoint
+
+    load_checkpoint(serve.checkpoint)  # every saved checkpoint is intact: the one it started from ...
+    for other in client.get("/api/runs").json():  # ... and those of earlier runs
+        if other["status"] == "finished":
+            load_checkpoint(other["checkpoint"])
     other = client.post("/api/evaluations", json={"env_ids": [75]})  # the limit is free again
     assert other.status_code == 201, other.text
     assert settled(client, f"/api/evaluations/{other.json()['id']}")["status"] == "finished"
