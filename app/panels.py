@@ -1,19 +1,24 @@
 """What the page says and draws beside the 3D scene, as pure functions of an episode and a step: the status and
-result text, the step readout, the counterfactual note, the timeline marks, the cell inspector, and the map
-panels (HTML with nearest-neighbour PNGs, so every cell stays a sharp square)."""
+result text, the step readout, the counterfactual note, the timeline marks, the cell inspector, the camera
+panel and the map panels (HTML).
+
+Images go to the page as they are: the camera image as the JPEG the runner recorded, each map as a PNG with one
+pixel per cell, both scaled up by the browser with `image-rendering: pixelated`, so every pixel and cell stays a
+sharp square; the marked cells are outlines drawn over the map by CSS. Nothing is upscaled or re-encoded here
+(measured: that took about half of the page's drawing time per step).
+"""
 
 from __future__ import annotations
 
+import base64
 import html
 
-import numpy as np
-
-from app.colors import data_uri, png_bytes, upscale
+from app.colors import data_uri, png_bytes
 from app.commands import Grounding
 from app.layers import CellReport, Layer
 from app.recording import FINISHED, Episode, StepRecord
 
-PANEL_UPSCALE = 4  # panel maps are upscaled with nearest neighbour and drawn with CSS pixelated scaling
+PIXELATED = "width:100%;image-rendering:pixelated;display:block"
 
 
 def error_html(text: str) -> str:
@@ -108,17 +113,19 @@ def inspector_markdown(report: CellReport | None, step: int) -> str:
             f"truly there: {truth}.")
 
 
-def mark_cells(image: np.ndarray, cells: list[tuple[int, int, tuple[int, int, int]]], factor: int) -> np.ndarray:
-    """Outline cells (row, col, colour) of an upscaled map in place, one pixel wide."""
-    h, w = image.shape[:2]
-    for r, c, colour in cells:
-        if 0 <= r < h // factor and 0 <= c < w // factor:
-            r0, c0 = r * factor, c * factor
-            image[r0, c0:c0 + factor] = colour
-            image[r0 + factor - 1, c0:c0 + factor] = colour
-            image[r0:r0 + factor, c0] = colour
-            image[r0:r0 + factor, c0 + factor - 1] = colour
-    return image
+def cell_marks_html(cells: list[tuple[int, int, tuple[int, int, int]]], size: int) -> str:
+    """Outlines of cells (row, col, colour) over a size x size map drawn at any scale (positions in percent)."""
+    step = 100 / size
+    return "".join(f'<div style="position:absolute;left:{c * step:.3f}%;top:{r * step:.3f}%;width:{step:.3f}%;'
+                   f'height:{step:.3f}%;box-shadow:inset 0 0 0 1px rgb({colour[0]},{colour[1]},{colour[2]})"></div>'
+                   for r, c, colour in cells if 0 <= r < size and 0 <= c < size)
+
+
+def camera_html(jpeg: bytes) -> str:
+    """The camera panel: the recorded JPEG (256 x 144), scaled to the panel's width with its pixels sharp."""
+    return (f'<div style="padding-right:10px"><img class="gsmn-camera" '
+            f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode("ascii")}" '
+            f'style="{PIXELATED};border-radius:3px"/></div>')
 
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
@@ -137,17 +144,15 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
     cells = []
     for name in ("semantic", "relevance", "goal", "goal_robot"):
         layer = layers[name]
-        image = upscale(layer.rgb, PANEL_UPSCALE)
-        if name != "goal_robot":
-            mark_cells(image, marks, PANEL_UPSCALE)
+        overlay = cell_marks_html(marks, layer.rgb.shape[0]) if name != "goal_robot" else ""
         title = layer.title
         if whatif_text and name in ("relevance", "goal", "goal_robot"):
             title += " · what-if"
         orient = "north up" if name != "goal_robot" else "ahead up"
         cells.append(f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">{html.escape(title)}</div>'
-                     f'<img data-layer="{name}" src="{data_uri(png_bytes(image))}" style="width:100%;'
-                     f'image-rendering:pixelated;border-radius:3px;display:block" title="{orient}"/>'
-                     f'{layer.legend_html}</div>')
+                     f'<div style="position:relative;border-radius:3px;overflow:hidden">'
+                     f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED}" '
+                     f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
     caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
                f"cells; white: the drone's cell, red: the goal.</div>")
     if whatif_text:

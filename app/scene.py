@@ -14,7 +14,7 @@ import math
 import numpy as np
 import viser
 
-from app.colors import png_bytes, upscale, with_alpha
+from app.colors import decode_image, png_bytes, upscale, with_alpha
 from gsmn.task.instructions import Instruction
 from gsmn.world.assets import AssetModel
 from gsmn.world.spec import WorldSpec
@@ -108,6 +108,14 @@ def set_png(handle: viser.ImageHandle, rgba: np.ndarray) -> None:
     handle._data = png_bytes(rgba)
 
 
+def set_frustum_jpeg(handle: viser.CameraFrustumHandle, jpeg: bytes) -> None:
+    """Show an already encoded JPEG in a camera frustum: the runner encodes every camera image once, and viser's
+    own setter would encode the pixels again (through imageio, after trying to import cv2 on every call).
+    `_format` / `_image_data` are the props viser's `image` setter assigns (viser 1.1)."""
+    handle._format = "jpeg"
+    handle._image_data = jpeg
+
+
 class SceneView:
     """The dynamic parts of the scene, by name. All methods expect to be called inside `server.atomic()`."""
 
@@ -189,9 +197,12 @@ class SceneView:
                     handle.visible = visible
 
     def set_drone(self, position: tuple[float, float, float], yaw: float, T_world_camera: np.ndarray,
-                  image: np.ndarray | None) -> None:
+                  image: np.ndarray | None, jpeg: bytes | None = None) -> None:
+        """Place the drone and its camera frustum showing `image`, or the same image already encoded (`jpeg`)."""
         wxyz, cam_position = R_to_wxyz(T_world_camera[:3, :3]), T_world_camera[:3, 3]
         if self.frustum is None or not _has(self.scene, "/drone/camera"):
+            if image is None and jpeg is not None:
+                image = decode_image(jpeg)
             self.frustum = self.scene.add_camera_frustum(
                 "/drone/camera", fov=self.vfov, aspect=self.aspect, scale=1.6, thickness=0.05,
                 image=image, format="jpeg", wxyz=wxyz, position=cam_position, color=(240, 120, 30))
@@ -199,7 +210,9 @@ class SceneView:
                                            wxyz=yaw_wxyz(yaw), position=position)
             return
         self.frustum.wxyz, self.frustum.position = wxyz, cam_position
-        if image is not None:
+        if jpeg is not None:
+            set_frustum_jpeg(self.frustum, jpeg)
+        elif image is not None:
             self.frustum.image = image
         self.body.wxyz, self.body.position = yaw_wxyz(yaw), position
 

@@ -26,7 +26,7 @@ import viser
 import viser.uplot
 from viser._messages import GuiSliderMark
 
-from app.colors import decode_image, upscale
+from app.colors import jpeg_bytes
 from app.commands import (
     Cancel,
     Ground,
@@ -43,6 +43,7 @@ from app.commands import (
 )
 from app.layers import RANGE_MODES, VALUE_MODES, build_layers, inspect_cell, world_cell
 from app.panels import (
+    camera_html,
     error_html,
     inspector_markdown,
     maps_html,
@@ -201,8 +202,8 @@ class Viewer(RunnerListener):
         gui = self.server.gui
         panel = gui.add_panel()
         with panel.add_tab("Camera and maps", viser.Icon.MAP):
-            self.camera = gui.add_image(np.zeros((144, 256, 3), np.uint8), label="Camera", format="jpeg",
-                                        jpeg_quality=90)
+            gui.add_markdown("Camera")
+            self.camera = gui.add_html(camera_html(jpeg_bytes(np.zeros((144, 256, 3), np.uint8))))
             self.readout = gui.add_markdown("")
             self.maps = gui.add_html(placeholder_html("Run an episode to see the model's maps."))
             self.inspector = gui.add_markdown("Click the field in the 3D view to inspect a map cell.")
@@ -421,7 +422,7 @@ class Viewer(RunnerListener):
             task = shown.task
             self.scene.draw_task(task.instruction if task else None, task.path if task else None)
             self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)
-        self.camera.image = upscale(shown.image, 2)
+        self.camera.content = camera_html(jpeg_bytes(shown.image))
         world = shown.world
         self.env_number.value = world.env_id
         self.split.value = world.split
@@ -587,8 +588,6 @@ class Viewer(RunnerListener):
         n = len(episode.steps)
         t = max(0, min(v.cursor, n - 1))
         record = episode.steps[t]
-        image = decode_image(record.camera_jpeg)
-        camera_image = upscale(image, 2)  # the panel is wider than the 256-pixel image; keep its pixels sharp
         counterfactual = self._counterfactual_at(episode, t)
         grounding = counterfactual if isinstance(counterfactual, Grounding) else None
         layers = None
@@ -601,14 +600,14 @@ class Viewer(RunnerListener):
         positions = np.array([s.position for s in episode.steps[: t + 1]])
         opacity = float(self.opacity.value)
         with self.server.atomic():
-            self.scene.set_drone(record.position, record.yaw, record.T_world_camera, image)
+            self.scene.set_drone(record.position, record.yaw, record.T_world_camera, None, record.camera_jpeg)
             self.scene.set_path(positions)
             for name in ("semantic", "relevance", "goal"):
                 visible = bool(self.layer_boxes[name].value) and layers is not None
                 layer = layers[name] if visible else None
                 self.scene.set_layer(name, layer.rgb if layer else None, layer.alpha if layer else None, opacity,
                                      visible)
-        self.camera.image = camera_image
+        self.camera.content = camera_html(record.camera_jpeg)
         self.readout.content = readout_markdown(episode, t, counterfactual, self.view.counterfactual)
         self.maps.content = maps_html(episode, t, layers, self.view.counterfactual if grounding else None,
                                       self._cell_of)

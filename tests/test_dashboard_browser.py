@@ -58,8 +58,7 @@ def field(page, label: str):
 def maps_state(page) -> dict:
     return page.evaluate("""() => {
         const m = document.querySelector('.gsmn-maps');
-        const img = [...document.querySelectorAll('img')].find(i => i.closest('div') &&
-            i.naturalWidth === 512 && i.naturalHeight === 288);
+        const img = document.querySelector('img.gsmn-camera');
         const layer = document.querySelector('.gsmn-maps img[data-layer="goal"]');
         return {episode: m ? m.dataset.episode : null, step: m && m.dataset.step !== '' ? +m.dataset.step : -1,
                 counterfactual: m ? m.dataset.counterfactual : null, camera: img ? img.src : null,

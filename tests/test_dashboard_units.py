@@ -3,7 +3,9 @@ the success quadrant drawn on the ground, and the text the page shows."""
 
 from __future__ import annotations
 
+import base64
 import math
+import re
 
 import numpy as np
 import pytest
@@ -23,7 +25,7 @@ from app.colors import (
     with_alpha,
 )
 from app.layers import MapHeads, build_layers, positive_probability, world_cell
-from app.panels import maps_html, mark_cells, other_side, readout_markdown, result_markdown
+from app.panels import camera_html, cell_marks_html, maps_html, other_side, readout_markdown, result_markdown
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import quadrant_angles
 from gsmn.config import preset
@@ -135,9 +137,9 @@ def test_world_cell_matches_the_model_layout():
     s = 30 / 32
     for r, c in [(0, 0), (0, 31), (31, 0), (17, 5)]:
         assert world_cell((c + 0.5) * s, 30 - (r + 0.5) * s, 30.0, 32) == (r, c)
-    image = np.zeros((8, 8, 3), np.uint8)
-    mark_cells(image, [(0, 1, (255, 0, 0)), (5, 5, (1, 1, 1))], 4)  # (5, 5) lies outside a 2 x 2 map: ignored
-    assert (image[0, 4:8] == (255, 0, 0)).all() and (image[1:3, 5:7] == 0).all()
+    # the page outlines cells over the map in percent of its size; cells outside the map are left out
+    marks = cell_marks_html([(0, 1, (255, 0, 0)), (5, 5, (1, 1, 1))], 2)
+    assert marks.count("<div") == 1 and "left:50.000%;top:0.000%;width:50.000%" in marks and "rgb(255,0,0)" in marks
 
 
 def test_episode_store_drops_the_oldest_finished_only():
@@ -210,5 +212,12 @@ def test_the_page_text_says_the_result_plainly():
                           _heads())
     page = maps_html(e, 0, layers, None, lambda x, y: world_cell(x, y, 30.0, 32))
     assert 'data-episode="7"' in page and 'data-step="0"' in page and page.count("data:image/png;base64,") == 4
-    assert "image-rendering:pixelated" in page
+    assert "image-rendering:pixelated" in page  # one pixel per cell, scaled up sharp by the browser
+    for uri in re.findall(r'src="data:image/png;base64,([^"]+)"', page):
+        assert decode_image(base64.b64decode(uri)).shape[:2] in ((32, 32), (64, 64))
+    assert page.count("box-shadow:inset") == 0  # the drone and the goal lie just outside the field here
+    inside = maps_html(e, 0, layers, None, lambda x, y: (3, 4))
+    assert inside.count("box-shadow:inset") == 2 * 3  # the drone's and the goal's cells on the three world maps
+    camera = camera_html(jpeg_bytes(np.zeros((144, 256, 3), np.uint8)))
+    assert '<img class="gsmn-camera" src="data:image/jpeg;base64,' in camera and "pixelated" in camera
     assert "No model maps" in maps_html(e, 0, None, None, None)
