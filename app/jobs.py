@@ -384,7 +384,7 @@ class JobManager:
             # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
             # chosen environments, in the run's folder; else the train split's, shared by runs with the same settings
             if settings.expert_data:
-                store = Path(settings.expert_data)
+                store = Path(settings.expert_data).resolve()  # the job runs in the repository, not our cwd
             elif env_ids is not None:
                 store = folder / "expert"
             else:
@@ -396,7 +396,7 @@ class JobManager:
 
                 demos = env_ids if env_ids is not None else split_env_ids("train", settings.dataset_size)
                 parts.append(shlex.join([self.python, "-m", "gsmn.cli", "collect", "--out", str(store), "--env-ids",
-                                         ",".join(map(str, demos)), "--workers", "1", *flags]))
+                                         ",".join(map(str, demos)), "--workers", str(settings.workers), *flags]))
             dagger = [self.python, "-m", "gsmn.cli", "train", "dagger", "--init", str(init), "--data", str(store),
                       "--run", str(folder / "run"), *flags]
             if env_ids is not None:

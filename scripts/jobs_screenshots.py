@@ -108,8 +108,9 @@ def main(argv: list[str] | None = None) -> int:
             iterations.press("Enter")
             page.wait_for_timeout(500)
             page.get_by_role("button", name="Launch", exact=True).click()
-            wait(lambda: (r := dashboard.jobs.db.run(1)) is not None and (len(r.metrics) >= 2 or r.status != "running"),
-                 what="two iterations")
+            wait(lambda: (r := dashboard.jobs.db.run(1)) is not None and (
+                len(r.metrics) >= 2 and (r.progress or {}).get("iteration", 0) >= 2
+                or r.status in ("finished", "failed", "cancelled")), what="two iterations")
             page.wait_for_timeout(1500)
             dismiss_notifications(page)
             page.screenshot(path=str(out / "dashboard_finetune.png"))
