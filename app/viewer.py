@@ -67,6 +67,9 @@ EXPERT_CHOICE = "Expert (oracle)"
 SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 steps/s)": 10.0,
           "slow (2 steps/s)": 2.0}
 REPLAY_STEPS_PER_SECOND = 10.0
+# A live episode is drawn at most this often, whatever the simulator's pace: each drawn step costs the page a 3D
+# redraw, and a browser on the same cores would take that time from the simulator (docs/dashboard.md).
+LIVE_FRAMES_PER_SECOND = 10.0
 FOLLOW_LABEL = "Follow the live step"
 GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before drawing without it
 
@@ -308,8 +311,14 @@ class Viewer(RunnerListener):
 
     # -- the UI thread ----------------------------------------------------------------------------------------
     def _loop(self) -> None:
+        """Apply events and draw. A live episode's new steps are drawn at most LIVE_FRAMES_PER_SECOND times a
+        second (its first step at once); anything a person does is drawn at once."""
+        frame_due: float | None = None  # when the newest live step is to be drawn
+        last_frame = 0.0
         while not self._closing:
             timeout = 1.0 / REPLAY_STEPS_PER_SECOND if self.view.replaying else 1.0
+            if frame_due is not None:
+                timeout = min(timeout, max(0.0, frame_due - time.perf_counter()))
             events = []
             try:
                 events.append(self._events.get(timeout=timeout))
@@ -318,13 +327,19 @@ class Viewer(RunnerListener):
             except queue.Empty:
                 pass
             try:
-                dirty = False
+                draw_now = False
                 for event in events:
                     if event[0] == "close":
                         return
-                    dirty |= self._apply(event)
-                dirty |= self._replay_tick()
-                if dirty:
+                    dirty = self._apply(event)
+                    if dirty and event[0] == "step" and len(event[1].steps) > 1:
+                        if frame_due is None:
+                            frame_due = last_frame + 1.0 / LIVE_FRAMES_PER_SECOND
+                    else:
+                        draw_now |= dirty
+                draw_now |= self._replay_tick()
+                if draw_now or (frame_due is not None and time.perf_counter() >= frame_due):
+                    frame_due, last_frame = None, time.perf_counter()
                     self._render()
             except Exception:  # noqa: BLE001 - keep the page alive; the log says what broke
                 log.error("viewer update failed:\n%s", traceback.format_exc())

@@ -134,7 +134,8 @@ def main() -> int:
     print(f"checkpoint: {checkpoint}{note}; preset {a.preset}; {os.cpu_count()} CPU cores; "
           f"load average {os.getloadavg()[0]:.1f} at start", flush=True)
 
-    dashboard = Dashboard(preset(a.preset), checkpoint=checkpoint, port=0, api_port=0, env_id=a.env_id)
+    dashboard = Dashboard(preset(a.preset), checkpoint=checkpoint, port=0, api_port=0, env_id=a.env_id,
+                          data_dir=tempfile.mkdtemp(prefix="gsmn-bench-"))
     runner, figures = dashboard.runner, {}
     try:
         with sync_playwright() as p:
