@@ -24,7 +24,8 @@ HORIZON = 60
 def server(tmp_path_factory):
     folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
     proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint", str(folder),
-                             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON)],
+                             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON),
+                             "--data-dir", str(tmp_path_factory.mktemp("data"))],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     lines: list[str] = []
@@ -169,7 +170,7 @@ def test_without_a_model_the_api_says_so_and_the_expert_flies(tmp_path):
     from gsmn.config import preset, with_overrides
 
     dashboard = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "30"}), port=0, api_port=0,
-                          checkpoints_root=tmp_path)
+                          checkpoints_root=tmp_path, data_dir=tmp_path / "data")
     try:
         with httpx.Client(base_url=dashboard.urls.api, timeout=60) as client:
             health = client.get("/api/health").json()

@@ -153,6 +153,19 @@ def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluati
     assert client.get(f"/api/evaluations/{evaluation['id']}/episodes", params={"side": "up"}).status_code == 422
     assert any(e["id"] == evaluation["id"] for e in client.get("/api/evaluations").json())
 
+    # the same results loaded from `gsmn eval --json` (and its --record folder) as an evaluation of their own
+    folder = serve.data_dir / "evaluations" / f"{evaluation['id']:04d}"
+    loaded = client.post("/api/evaluations/import", json={"path": str(folder / "results.json"),
+                                                          "record_dir": str(folder / "episodes")})
+    assert loaded.status_code == 201, loaded.text
+    loaded = loaded.json()
+    assert loaded["status"] == "finished" and loaded["source"] == "import" and loaded["env_ids"] == ENV_IDS
+    assert loaded["summary"] == evaluation["summary"] and loaded["stages"] == evaluation["stages"]
+    again = client.get(f"/api/evaluations/{loaded['id']}/episodes").json()
+    assert [(e["env_id"], e["stage"]) for e in again] == [(e["env_id"], e["stage"]) for e in episodes]
+    bad = client.post("/api/evaluations/import", json={"path": str(folder / "config.json")})
+    assert bad.status_code == 422 and "not a `gsmn eval --json` file" in bad.json()["detail"]
+
 
 def test_a_replay_flies_the_episode_again_in_the_live_view(serve, evaluation):
     client = serve.client
@@ -249,8 +262,11 @@ def test_a_run_whose_process_is_killed_is_marked_failed_and_the_server_keeps_ser
     for other in client.get("/api/runs").json():  # ... and those of earlier runs
         if other["status"] == "finished":
             load_checkpoint(other["checkpoint"])
-    other = client.post("/api/evaluations", json={"env_ids": [75]})  # the limit is free again
+    other = client.post("/api/evaluations", json={"split": "dev", "episodes": 1})  # the limit is free again
     assert other.status_code == 201, other.text
+    assert other.json()["env_ids"] == [85] and other.json()["label"] == "dev, first 1"
+    second = client.post("/api/evaluations", json={"env_ids": [75]})
+    assert second.status_code == 409 and "1 evaluation already running" in second.json()["detail"]
     assert settled(client, f"/api/evaluations/{other.json()['id']}")["status"] == "finished"
 
 

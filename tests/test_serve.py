@@ -11,8 +11,9 @@ import time
 import urllib.request
 
 
-def test_serve_prints_its_url_and_serves_the_page():
-    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--port", "8391", "--preset", "tiny"],
+def test_serve_prints_its_url_and_serves_the_page(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--port", "8391", "--preset", "tiny",
+                             "--data-dir", str(tmp_path)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
