@@ -1,20 +1,20 @@
 #!/usr/bin/env bash
 # The GSMN training pipeline on this machine's CPU, resumable at every step: run it again after a kill
 # or in a new session and it continues where it stopped. Sizes are chosen from measured throughput
-# (docs/training.md): 700 train environments, 10 epochs, one episode per batch.
+# (docs/training.md): 600 train and 40 dev environments, 8 epochs, one episode per batch.
 #
 #   KIND=gs-fpv-mem bash scripts/train_gsmn.sh        # the baselines the same way
-#   INIT=runs/gsmn_sup/checkpoint bash scripts/train_gsmn.sh   # how the shipped GSMN was trained: it
-#                                      # continues one first epoch with batches of 4 (docs/training.md)
+#   INIT=runs/other/checkpoint bash scripts/train_gsmn.sh      # start from another run's weights
 set -euo pipefail
 cd "$(dirname "$0")/.."
 KIND=${KIND:-gsmn}
-EPOCHS=${EPOCHS:-10}
+EPOCHS=${EPOCHS:-8}
 BATCH=${BATCH:-1}
-TRAIN_EPISODES=${TRAIN_EPISODES:-700}
+TRAIN_EPISODES=${TRAIN_EPISODES:-600}
+DEV_EPISODES=${DEV_EPISODES:-40}
 RUN=${RUN:-runs/${KIND}_sup_b${BATCH}}
 INIT=${INIT:-}
 .venv/bin/gsmn collect --out data/expert_train --split train --episodes "$TRAIN_EPISODES" --workers 2
-.venv/bin/gsmn collect --out data/expert_dev --split dev --episodes 60 --workers 2
+.venv/bin/gsmn collect --out data/expert_dev --split dev --episodes "$DEV_EPISODES" --workers 2
 .venv/bin/gsmn train supervised --data data/expert_train --dev data/expert_dev --run "$RUN" \
     --kind "$KIND" --train.epochs "$EPOCHS" --train.batch-size "$BATCH" ${INIT:+--init "$INIT"}
