@@ -21,18 +21,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
-
-
-def field(page, label: str):
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
-
-
-def dismiss_notifications(page) -> None:
-    page.evaluate("""() => document.querySelectorAll('.mantine-Notification-closeButton, '
-                  + '[class*="Notification"] button').forEach(b => b.click())""")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_dashboard import CHROMIUM_ARGS, dismiss_notifications, field  # noqa: E402 - the page helpers, shared
 
 
 def wait(condition, timeout: float = 900.0, what: str = "") -> None:
