@@ -214,7 +214,8 @@ def main() -> int:
             print(f"  of which the server (click callback to maps sent): {summary(whatif_server_ms)}", flush=True)
 
             if a.screenshots:
-                take_screenshots(page, dashboard, Path(a.screenshots), runner, SetSpeed, StartEpisode)
+                take_screenshots(page, dashboard, Path(a.screenshots), runner, SetSpeed, StartEpisode,
+                                 expert=bool(note))
             browser.close()
     finally:
         dashboard.close()
@@ -226,9 +227,10 @@ def main() -> int:
     return 0
 
 
-def take_screenshots(page, dashboard, out: Path, runner, SetSpeed, StartEpisode) -> None:
-    """Mid-episode (the expert flying at real time with the model watching, relevance and goal on the ground,
-    colours over each frame's range), then a counterfactual on the finished episode's map."""
+def take_screenshots(page, dashboard, out: Path, runner, SetSpeed, StartEpisode, expert: bool = False) -> None:
+    """Mid-episode (the model flying at real time, or with `expert` the expert flying while the model watches;
+    relevance and goal on the ground, colours over each frame's range), then a counterfactual on the finished
+    episode's map."""
     out.mkdir(parents=True, exist_ok=True)
     page.set_viewport_size({"width": 1500, "height": 1000})
     field(page, "Relevance map").click()
@@ -237,12 +239,13 @@ def take_screenshots(page, dashboard, out: Path, runner, SetSpeed, StartEpisode)
     page.get_by_role("button", name="Clear", exact=True).click()
     runner.call(SetSpeed(5.0))
     try:
-        policy = field(page, "Policy")
-        policy.click()
-        page.get_by_role("option", name="Expert (oracle)").click()
+        if expert:  # an untrained model does not fly anywhere worth showing
+            field(page, "Policy").click()
+            page.get_by_role("option", name="Expert (oracle)").click()
         page.get_by_role("button", name="Run", exact=True).click()
-        wait(lambda: runner.live is not None and len(runner.live.steps) >= 45)
+        wait(lambda: runner.live is not None)
         episode = runner.live
+        wait(lambda: len(episode.steps) >= 45 or not episode.live)  # mid-flight, or a model that stopped early
         page.wait_for_timeout(400)
         dismiss_notifications(page)
         page.mouse.move(700, 880)
