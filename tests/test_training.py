@@ -55,8 +55,25 @@ def test_tiny_preset_trains_end_to_end_and_its_loss_falls(stores, tmp_path):
     # Training again in the same folder resumes a finished run: nothing more to do, nothing lost.
     train_supervised(tmp_path / "run", "gsmn", CONFIG, train, dev, log=lines.append)
     assert len(lines) == 3
-    with pytest.raises(RunError, match="different configuration"):
-        train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.epochs": "4"}), train, dev)
+    for change in ({"train.learning_rate": "0.01"}, {"train.epochs": "2"}, {"train.epochs": "4", "train.seed": "1"}):
+        with pytest.raises(RunError, match="different configuration"):
+            train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, change), train, dev)
+
+
+def test_a_finished_run_extended_by_an_epoch_matches_a_run_of_that_length(stores, tmp_path):
+    train, dev = stores
+    longer = with_overrides(CONFIG, {"train.epochs": "4"})
+    train_supervised(tmp_path / "extended", "gsmn", CONFIG, train, dev)
+    train_supervised(tmp_path / "extended", "gsmn", longer, train, dev)  # more epochs: the run goes on
+    train_supervised(tmp_path / "straight", "gsmn", longer, train, dev)
+    logs = {name: RunFolder(tmp_path / name).read_log() for name in ("extended", "straight")}
+    assert [r["epoch"] for r in logs["extended"]] == [1, 2, 3, 4]
+    assert logs["extended"][-1]["train"]["loss"] == pytest.approx(logs["straight"][-1]["train"]["loss"])
+    extended = load_file(tmp_path / "extended" / "state" / "weights.safetensors")
+    straight = load_file(tmp_path / "straight" / "state" / "weights.safetensors")
+    for key, value in straight.items():
+        torch.testing.assert_close(extended[key], value, msg=key)
+    assert json.loads((tmp_path / "extended" / "config.json").read_text())["train"]["epochs"] == 4
 
 
 def _cli(run: Path, data: Path) -> list[str]:

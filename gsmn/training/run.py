@@ -1,7 +1,8 @@
 """A training run's folder: resolved config, per-epoch log, resumable state and the resulting checkpoint.
 
     run_dir/
-      config.json         the resolved RunConfig (written once; a resumed run must match it)
+      config.json         the resolved RunConfig (a resumed run must match it, except that it may ask for more
+                          epochs or DAgger iterations: that extends the run, optimizer state and all)
       log.jsonl           one JSON object per finished epoch (or DAgger iteration)
       state/              everything needed to resume: model weights (safetensors), optimizer state,
                           counters and running sums (JSON). Replaced atomically: a kill at any moment
@@ -46,6 +47,22 @@ class TrainState:
     extra: dict[str, Any] = field(default_factory=dict)  # e.g. DAgger's dataset contents
 
 
+EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
+
+
+def _is_extension(saved: dict, new: dict) -> bool:
+    """`new` equals `saved` but for a length in EXTENDABLE that did not shrink (and at least one that grew)."""
+    trimmed_saved, trimmed_new = json.loads(json.dumps(saved)), json.loads(json.dumps(new))
+    grew = False
+    for section, key in EXTENDABLE:
+        old_value = trimmed_saved.get(section, {}).pop(key, None)
+        new_value = trimmed_new.get(section, {}).pop(key, None)
+        if old_value is None or new_value is None or new_value < old_value:
+            return False
+        grew |= new_value > old_value
+    return grew and trimmed_saved == trimmed_new
+
+
 class RunFolder:
     def __init__(self, root: Path | str):
         self.root = Path(root)
@@ -64,16 +81,20 @@ class RunFolder:
         return self.root / "log.jsonl"
 
     def start(self, config: RunConfig) -> None:
-        """Create the folder, or check that an existing one was made with the same configuration."""
+        """Create the folder, or check that an existing one was made with the same configuration. The one change
+        allowed is a longer run (more `train.epochs` or `dagger.iterations`, see EXTENDABLE): the run continues
+        from its saved state and the new length is recorded."""
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / "config.json"
+        new = json.loads(config.to_json())
         if path.is_file():
             saved = json.loads(path.read_text())
-            if saved != json.loads(config.to_json()):
-                raise RunError(f"{self.root} holds a run with a different configuration; use a new run folder "
-                               "or the same settings to resume it")
-        else:
-            _write_atomic(path, config.to_json() + "\n")
+            if saved == new:
+                return
+            if not _is_extension(saved, new):
+                raise RunError(f"{self.root} holds a run with a different configuration; use a new run folder, "
+                               "the same settings to resume it, or more epochs (iterations) to extend it")
+        _write_atomic(path, config.to_json() + "\n")
 
     def has_state(self) -> bool:
         return (self.state_dir / "state.json").is_file() or (self.root / "state.old" / "state.json").is_file()
