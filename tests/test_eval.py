@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -126,6 +127,23 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "nope", "--env-ids", "70"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown system" in bad.stderr
+    # scripts/results_table.py makes the Table 1 markdown from such files, and refuses rows on other environments.
+    oracle = tmp_path / "oracle.json"
+    subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "70,71,72", "--json",
+                    str(oracle), "--preset", "tiny"], check=True, capture_output=True)
+    script = Path(__file__).resolve().parents[1] / "scripts" / "results_table.py"
+    table = subprocess.run([sys.executable, str(script), str(out), str(oracle), "--label", "oracle=The expert"],
+                           capture_output=True, text=True)
+    assert table.returncode == 0, table.stderr
+    rows = table.stdout.strip().splitlines()
+    assert len(rows) == 4 and rows[2].startswith("| Random landmark | ") and rows[3].startswith("| The expert | ")
+    oracle_summary = json.loads(oracle.read_text())["summary"]
+    assert f"| {oracle_summary['success']:.2f} " in rows[3] and "| 87.87 (86.47) |" in rows[3]
+    d["env_ids"] = [70, 71]
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps(d))
+    mixed = subprocess.run([sys.executable, str(script), str(oracle), str(other)], capture_output=True, text=True)
+    assert mixed.returncode == 2 and "different environments" in mixed.stderr
 
 
 def test_learned_systems_load_from_checkpoints(tmp_path):
