@@ -204,6 +204,11 @@ class ModelConfig:
     leaky_lambda: float = _f(0.2, "leaky-integrator rate of the semantic map (first step: S = F)")
     leaky_relu_slope: float = _f(0.01, "negative slope of every LeakyReLU")
     filter_init_std: float = _f(0.001, "std of the N(0, std) init of the language-to-filter layers")
+    # The paper's language-made kernels are the affine map itself (signed); the original squashes them with a sigmoid
+    # (all weights positive), which kept our goal maps from following the grounding. Both are L2-normalised
+    # (docs/model.md). Checkpoints written before this field existed used the sigmoid (gsmn/model/checkpoint.py).
+    filter_activation: str = _f("none", "activation of the language-made filter kernels: none (paper, signed "
+                                        "weights) or sigmoid (original code, positive weights)")
     controller_hidden: int = _f(64, "GSMN controller hidden units")
     controller_dropout: float = _f(0.5, "dropout on the flattened controller input")
     # The paper feeds the instruction embedding to the controller, the original code does not (docs/model.md).
@@ -226,6 +231,8 @@ class ModelConfig:
         _check(0 < self.leaky_lambda <= 1, f"model.leaky_lambda must be in (0, 1], got {self.leaky_lambda}")
         _check(0 <= self.controller_dropout < 1, "model.controller_dropout must be in [0, 1)")
         _check(self.filter_init_std >= 0, "model.filter_init_std must be >= 0")
+        _check(self.filter_activation in ("sigmoid", "none"),
+               f"model.filter_activation must be sigmoid or none, got {self.filter_activation!r}")
         _check(self.pose_noise_std >= 0 and self.pose_noise_yaw_deg >= 0, "model pose noise stds must be >= 0")
 
 

@@ -39,6 +39,7 @@ from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
 
 TINY = preset("tiny")
+SIGMOID = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, filter_activation="sigmoid"))  # original
 VOCABULARY = Vocabulary.default()
 
 
@@ -182,15 +183,33 @@ def test_forward_does_not_modify_its_inputs(batch, kind):
         assert torch.equal(getattr(batch, name), value), name
 
 
-def test_initial_kernels_are_uniform():
-    """Language filters start N(0, 0.001): every kernel close to uniform, whatever the instruction."""
-    model = seeded_model("gsmn")
+def test_initial_sigmoid_kernels_are_uniform():
+    """Language filters start N(0, 0.001): through the original's sigmoid every kernel starts close to uniform,
+    whatever the instruction."""
+    model = seeded_model("gsmn", SIGMOID)
     e = torch.randn(4, 30)
     k = model.relevance_filter.kernels(e)
     torch.testing.assert_close(k, torch.full_like(k, 1 / math.sqrt(96)), atol=0, rtol=0.03)
     k1, k2 = model.goal_filter.kernels(e)
     torch.testing.assert_close(k1, torch.full_like(k1, 1 / 9), atol=0, rtol=0.03)
     torch.testing.assert_close(k2, torch.full_like(k2, 1 / math.sqrt(54)), atol=0, rtol=0.03)
+
+
+@pytest.mark.parametrize("kind", ["gsmn", "gs-fpv-mem"])
+def test_signed_kernels_can_subtract_a_channel_and_stay_unit_norm(kind):
+    """model.filter_activation = "none" (the paper's K = W e + b, the default): kernels take both signs, each still
+    unit-norm; the original's sigmoid keeps every weight positive."""
+    assert TINY.model.filter_activation == "none"
+    e = torch.randn(4, 30)
+    for config, can_be_negative in ((SIGMOID, False), (TINY, True)):
+        model = seeded_model(kind, config)
+        k = model.relevance_filter.kernels(e)
+        k1, k2 = model.goal_filter.kernels(e)
+        assert bool((k < 0).any()) == can_be_negative and bool((k1 < 0).any()) == can_be_negative
+        torch.testing.assert_close(k.flatten(1).norm(dim=1), torch.ones(4))
+        torch.testing.assert_close(k2.flatten(1).norm(dim=1), torch.ones(4))
+    with pytest.raises(ValueError, match="filter_activation"):
+        dataclasses.replace(TINY.model, filter_activation="relu")
 
 
 def test_bf16_inference_is_close_and_leaves_training_in_float32(batch):
@@ -271,8 +290,9 @@ def test_policy_step_by_step_equals_the_sequence_forward(episodes, kind):
         torch.testing.assert_close(out.v[0, 0], full.v[0, t], atol=1e-4, rtol=0)
         torch.testing.assert_close(out.omega[0, 0], full.omega[0, t], atol=1e-4, rtol=0)
         torch.testing.assert_close(out.stop_logit[0, 0], full.stop_logit[0, t], atol=1e-4, rtol=0)
-        assert action.forward_velocity == pytest.approx(float(full.v[0, t]) * 1.6, abs=1e-4)
-        assert action.yaw_rate == pytest.approx(float(full.omega[0, t]) * 2.44, abs=1e-4)
+        # The same 1e-4 in normalised units, scaled to m/s and rad/s.
+        assert action.forward_velocity == pytest.approx(float(full.v[0, t]) * 1.6, abs=1.6e-4)
+        assert action.yaw_rate == pytest.approx(float(full.omega[0, t]) * 2.44, abs=2.44e-4)
         assert action.stop == bool(full.stop_logit[0, t] > 0)
         if kind == "gsmn":
             torch.testing.assert_close(out.semantic_map_w[0, 0], full.semantic_map_w[0, t], atol=1e-3, rtol=0)
@@ -395,6 +415,21 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path, batch, kind):
     save_checkpoint(folder, loaded, TINY, VOCABULARY)
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]
     assert isinstance(load_policy(folder), ModelPolicy)
+
+
+def test_a_checkpoint_from_before_filter_activation_loads_with_the_sigmoid(tmp_path, batch):
+    """config.json files written before model.filter_activation existed used the sigmoid: they load as such and fly
+    as they did."""
+    model = seeded_model("gsmn", SIGMOID).eval()
+    folder = save_checkpoint(tmp_path / "old", model, SIGMOID, VOCABULARY)
+    raw = json.loads((folder / "config.json").read_text())
+    del raw["model"]["filter_activation"]
+    (folder / "config.json").write_text(json.dumps(raw))
+    loaded, config, _, _ = load_checkpoint(folder)
+    assert config == SIGMOID
+    with torch.inference_mode():
+        torch.testing.assert_close(forward_batch(loaded, batch).goal_map_w, forward_batch(model, batch).goal_map_w,
+                                   rtol=0, atol=0)
 
 
 @pytest.fixture

@@ -107,8 +107,12 @@ def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
         raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
+    raw_config = _read_json(folder, "config.json")
+    if isinstance(raw_config, dict) and isinstance(raw_config.get("model"), dict):
+        # Written before model.filter_activation existed, when the kernels always went through a sigmoid.
+        raw_config["model"].setdefault("filter_activation", "sigmoid")
     try:
-        config = RunConfig.from_dict(_read_json(folder, "config.json"))
+        config = RunConfig.from_dict(raw_config)
     except (ConfigError, TypeError, AttributeError) as e:
         raise CheckpointError(f"checkpoint {folder}: config.json is not a valid RunConfig ({e})") from e
     try:

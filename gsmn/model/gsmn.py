@@ -95,9 +95,9 @@ def add_shared_modules(module: nn.Module, m: ModelConfig, vocabulary_size: int) 
     module.encoder = InstructionEncoder(vocabulary_size, m.word_embedding_dim, m.instruction_hidden)
     module.resnet = ResNet13(m.feature_channels, slope, m.channels_last, m.inference_bf16)
     module.relevance_filter = RelevanceFilter(m.instruction_hidden, m.feature_channels, m.relevance_channels,
-                                              m.filter_init_std, slope)
+                                              m.filter_init_std, slope, m.filter_activation)
     module.goal_filter = GoalFilter(m.instruction_hidden, m.relevance_channels, m.goal_channels, 3,
-                                    m.filter_init_std, slope)
+                                    m.filter_init_std, slope, m.filter_activation)
 
 
 class GSMN(nn.Module):
