@@ -44,13 +44,14 @@ def _paper(system: str, i: int) -> str:
     return f"{full[i]:.2f}" + (f" ({pruned[i]:.2f})" if pruned else "")
 
 
-def table(results: list[dict], labels: dict[str, str]) -> str:
+def table(results: list[dict], labels: dict[str, str], files: list[str] | None = None) -> str:
+    """One row per result; a row is named by labels[its file] or labels[its system], else the system's name."""
     header = ("| system | success % (ours) | success % (paper) | landmark % (ours) | landmark % (paper) "
               "| mean dist m (ours) | mean (paper) | median m (ours) | median (paper) |")
     lines = [header, "|" + "---|" * 9]
-    for r in results:
+    for r, file in zip(results, files or [None] * len(results), strict=True):
         system = r["system"]
-        cells = [labels.get(system, NAMES.get(system, system))]
+        cells = [labels.get(file, labels.get(system, NAMES.get(system, system)))]
         for i in range(4):
             cells += [_ours(r["summary"], i), _paper(system, i)]
         lines.append("| " + " | ".join(cells) + " |")
@@ -60,8 +61,8 @@ def table(results: list[dict], labels: dict[str, str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", type=Path, help="gsmn eval --json outputs, one row each, in order")
-    parser.add_argument("--label", action="append", default=[], metavar="SYSTEM=TEXT",
-                        help="the row name for a system (e.g. gsmn='GSMN (20 epochs)')")
+    parser.add_argument("--label", action="append", default=[], metavar="SYSTEM_OR_FILE=TEXT",
+                        help="the row name for a system or for one file (e.g. gsmn='GSMN (20 epochs)')")
     args = parser.parse_args(argv)
     labels = dict(item.split("=", 1) for item in args.label)
     results = [json.loads(f.read_text()) for f in args.files]
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"the files cover different environments ({counts}); evaluate them on the same ones",
               file=sys.stderr)
         return 2
-    print(table(results, labels))
+    print(table(results, labels, [str(f) for f in args.files]))
     return 0
 
 
