@@ -592,9 +592,7 @@ class JobManager:
             recording=str(recording) if recording else None))
 
     def _attribute(self, record: dict, config: RunConfig, checkpoint: str, recording: Path) -> dict | None:
-        from gsmn.attribution import attribute, load_trace
-        from gsmn.task.instructions import Instruction
-        from gsmn.world.spec import world_for_env
+        from gsmn.attribution import attribute_record, load_trace
 
         heads = self._heads_of(checkpoint)
         if heads is None:
@@ -604,14 +602,7 @@ class JobManager:
         except (OSError, ValueError, KeyError) as e:
             log.warning("cannot read %s: %s", recording, e)
             return None
-        world = world_for_env(int(record["env_id"]), config.world)
-        instruction = Instruction(text=record["instruction"], landmark_index=int(record["landmark_index"]),
-                                  noun_phrase=record["noun_phrase"], side=record["side"],
-                                  goal_x=float(record["goal_x"]), goal_y=float(record["goal_y"]),
-                                  ambiguous=bool(record["ambiguous"]))
-        a = attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
-                      bool(record["stopped"]), bool(record["success"]), config.task.success_radius)
-        return a.to_dict()
+        return attribute_record(record, trace, heads, config).to_dict()
 
     def _heads_of(self, checkpoint: str):
         if checkpoint not in self._heads:

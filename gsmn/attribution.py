@@ -216,6 +216,20 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         final_to_peak=final_to_peak)
 
 
+def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config) -> Attribution:
+    """`attribute` for one episode of a `gsmn eval` result (a dict as in its JSON) and its recorded trace, under
+    the evaluation's RunConfig (the world is rebuilt from the episode's env id)."""
+    from gsmn.world.spec import world_for_env
+
+    world = world_for_env(int(record["env_id"]), config.world)
+    instruction = Instruction(text=record["instruction"], landmark_index=int(record["landmark_index"]),
+                              noun_phrase=record["noun_phrase"], side=record["side"],
+                              goal_x=float(record["goal_x"]), goal_y=float(record["goal_y"]),
+                              ambiguous=bool(record["ambiguous"]))
+    return attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
+                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius)
+
+
 def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:
     """How many failures each stage explains (successes and episodes without maps are not counted)."""
     counts = dict.fromkeys(STAGES, 0)

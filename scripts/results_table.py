@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     results = [json.loads(f.read_text()) for f in args.files]
     envs = {tuple(r["env_ids"]) for r in results}
     if len(envs) != 1:
-        counts = ", ".join(f"{f}: {len(r['env_ids'])}" for f, r in zip(args.files, results))
+        counts = ", ".join(f"{f}: {len(r['env_ids'])}" for f, r in zip(args.files, results, strict=True))
         print(f"the files cover different environments ({counts}); evaluate them on the same ones",
               file=sys.stderr)
         return 2

@@ -6,15 +6,20 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gsmn.attribution import (
+    STAGE_TITLES,
     STAGES,
     FinalMaps,
     Heads,
     attribute,
+    attribute_record,
     cell_centre,
     cell_of,
     count_stages,
@@ -142,7 +147,7 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     attribution reads the maps as the dashboard's layers do."""
     from app.fixtures import make_untrained_checkpoint
     from app.layers import MapHeads, inspect_cell
-    from gsmn.evaluation import evaluate
+    from gsmn.evaluation import evaluate, results_dict
     from gsmn.model.checkpoint import load_checkpoint
 
     config = with_overrides(preset("tiny"), {"task.horizon": "25"})
@@ -166,6 +171,16 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     assert report.p_named == pytest.approx(a.p_named, abs=1e-5) and report.observed == a.observed
     if a.observed:
         assert report.classes[0][0] == a.top_class
+
+    # The same from the episode as `gsmn eval --json` writes it, and over a whole result file.
+    assert attribute_record(json.loads(json.dumps(record.to_dict())), trace, Heads.of(model), config) == a
+    results = tmp_path / "eval.json"
+    results.write_text(json.dumps(results_dict("gsmn", str(folder), [record], config, 1.0, 1)))
+    script = Path(__file__).resolve().parents[1] / "scripts" / "attribution_counts.py"
+    counts = subprocess.run([sys.executable, str(script), str(results), str(tmp_path / "rec")], capture_output=True,
+                            text=True)
+    assert counts.returncode == 0, counts.stderr
+    assert counts.stdout.startswith("1 failures of 1 episodes") and f"{STAGE_TITLES[a.stage]:<15} 1" in counts.stdout
 
     save_trace(tmp_path / "copy.npz", trace)
     again = load_trace(tmp_path / "copy.npz")
