@@ -76,6 +76,20 @@ def test_a_finished_run_extended_by_an_epoch_matches_a_run_of_that_length(stores
     assert json.loads((tmp_path / "extended" / "config.json").read_text())["train"]["epochs"] == 4
 
 
+def test_a_run_from_a_checkpoint_keeps_the_checkpoints_architecture(stores, tmp_path):
+    """--init of a checkpoint with the original's sigmoid kernels under a config that says signed: the run trains
+    and records the checkpoint's model settings (no weight shape would have caught the difference)."""
+    train, _ = stores
+    one = with_overrides(CONFIG, {"train.epochs": "1"})
+    sigmoid = with_overrides(one, {"model.filter_activation": "sigmoid"})
+    start = train_supervised(tmp_path / "sigmoid", "gsmn", sigmoid, train, log=lambda s: None)
+    assert one.model.filter_activation == "none"
+    end = train_supervised(tmp_path / "continued", "gsmn", one, train, init=start, log=lambda s: None)
+    model, config, _, _ = load_checkpoint(end)
+    assert config.model == sigmoid.model and model.goal_filter.activation == "sigmoid"
+    assert json.loads((tmp_path / "continued" / "config.json").read_text())["model"]["filter_activation"] == "sigmoid"
+
+
 def _cli(run: Path, data: Path) -> list[str]:
     args = [sys.executable, "-m", "gsmn.cli", "train", "supervised", "--data", str(data), "--run", str(run),
             "--preset", "tiny"]

@@ -12,6 +12,7 @@ missing or malformed file, an unknown kind, or weights that do not fit the model
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -93,6 +94,26 @@ def _read_json(folder: Path, name: str) -> Any:
         raise CheckpointError(f"checkpoint {folder}: {name} is not valid JSON ({e})") from e
 
 
+def read_checkpoint_config(folder: str | Path) -> RunConfig:
+    """The RunConfig a checkpoint was made with (its config.json), without loading the weights."""
+    folder = Path(folder)
+    raw_config = _read_json(folder, "config.json")
+    if isinstance(raw_config, dict) and isinstance(raw_config.get("model"), dict):
+        # Written before model.filter_activation existed, when the kernels always went through a sigmoid.
+        raw_config["model"].setdefault("filter_activation", "sigmoid")
+    try:
+        return RunConfig.from_dict(raw_config)
+    except (ConfigError, TypeError, AttributeError) as e:
+        raise CheckpointError(f"checkpoint {folder}: config.json is not a valid RunConfig ({e})") from e
+
+
+def with_model_of(config: RunConfig, init: str | Path) -> RunConfig:
+    """`config` with the model section of the checkpoint `init`: a run that starts from a checkpoint keeps the
+    architecture its weights were trained with (the kernels' activation, say, which no weight shape reveals), and
+    its own checkpoints record it."""
+    return dataclasses.replace(config, model=read_checkpoint_config(init).model)
+
+
 def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
                     ) -> tuple[Model, RunConfig, Vocabulary, dict[str, Any]]:
     """(model in eval mode, config, vocabulary, meta) from a checkpoint folder."""
@@ -107,14 +128,7 @@ def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
         raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
-    raw_config = _read_json(folder, "config.json")
-    if isinstance(raw_config, dict) and isinstance(raw_config.get("model"), dict):
-        # Written before model.filter_activation existed, when the kernels always went through a sigmoid.
-        raw_config["model"].setdefault("filter_activation", "sigmoid")
-    try:
-        config = RunConfig.from_dict(raw_config)
-    except (ConfigError, TypeError, AttributeError) as e:
-        raise CheckpointError(f"checkpoint {folder}: config.json is not a valid RunConfig ({e})") from e
+    config = read_checkpoint_config(folder)
     try:
         vocabulary = Vocabulary.from_json((folder / "vocabulary.json").read_text())
     except FileNotFoundError as e:

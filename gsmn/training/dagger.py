@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from gsmn.config import RunConfig
-from gsmn.model.checkpoint import load_policy, save_checkpoint
+from gsmn.model.checkpoint import load_policy, save_checkpoint, with_model_of
 from gsmn.task.rollout import task_for_env
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunFolder, TrainState
@@ -79,6 +79,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
 
     Rollouts are drawn from `env_ids` (default: the environments of the expert store)."""
     torch.set_num_threads(config.train.threads)
+    config = with_model_of(config, init)
     dc, seed = config.dagger, config.train.seed
     run = RunFolder(run_dir)
     run.start(config)

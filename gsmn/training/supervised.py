@@ -19,7 +19,7 @@ import torch
 
 from gsmn.config import RunConfig
 from gsmn.model.batch import collate
-from gsmn.model.checkpoint import load_checkpoint, save_checkpoint
+from gsmn.model.checkpoint import load_checkpoint, save_checkpoint, with_model_of
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
 from gsmn.model.vocabulary import Vocabulary
@@ -167,6 +167,8 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
     `stop_after(state)` is asked after every saved state and may end the call early (the run stays
     resumable); tests use it, the command line does not."""
     torch.set_num_threads(config.train.threads)
+    if init is not None:
+        config = with_model_of(config, init)
     run = RunFolder(run_dir)
     run.start(config)
     model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
