@@ -28,10 +28,11 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from gsmn.config import RunConfig
 from gsmn.task.instructions import Instruction
 from gsmn.task.metrics import side_of
 from gsmn.world.landmarks import CATALOGUE
-from gsmn.world.spec import WorldSpec
+from gsmn.world.spec import WorldSpec, world_for_env
 
 STAGES = ("perception", "grounding", "goal", "control")
 STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
@@ -216,11 +217,9 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         final_to_peak=final_to_peak)
 
 
-def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config) -> Attribution:
+def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config: RunConfig) -> Attribution:
     """`attribute` for one episode of a `gsmn eval` result (a dict as in its JSON) and its recorded trace, under
     the evaluation's RunConfig (the world is rebuilt from the episode's env id)."""
-    from gsmn.world.spec import world_for_env
-
     world = world_for_env(int(record["env_id"]), config.world)
     instruction = Instruction(text=record["instruction"], landmark_index=int(record["landmark_index"]),
                               noun_phrase=record["noun_phrase"], side=record["side"],

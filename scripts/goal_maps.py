@@ -22,9 +22,8 @@ from gsmn.model.labels import make_labels
 from gsmn.training.store import EpisodeStore
 
 
-def head_maps(folder: Path, sample) -> tuple[torch.Tensor, torch.Tensor, object]:
+def head_maps(model, vocabulary, sample) -> tuple[torch.Tensor, torch.Tensor, object]:
     """P(named) and P(goal) over the world map (n, n) a third of the way through `sample`, and its labels."""
-    model, _, vocabulary, _ = load_checkpoint(folder)
     batch = collate([sample], vocabulary)
     with torch.inference_mode():
         out = model(batch.images, batch.T_world_camera, batch.K, batch.poses, batch.tokens, batch.lengths)
@@ -46,15 +45,19 @@ def main(argv: list[str] | None = None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    checkpoints = [tuple(c.split("=", 1)) for c in args.checkpoint]
+    checkpoints = []
+    for item in args.checkpoint:
+        label, folder = item.split("=", 1)
+        model, _, vocabulary, _ = load_checkpoint(Path(folder))
+        checkpoints.append((label, model, vocabulary))
     store = EpisodeStore(args.data)
     keys = store.keys()[: args.episodes]
     rows = 2 * len(checkpoints)
     fig, axes = plt.subplots(rows, len(keys), figsize=(2.4 * len(keys), 2.5 * rows), squeeze=False)
     for j, key in enumerate(keys):
         sample = store.read(key)
-        for c, (label, folder) in enumerate(checkpoints):
-            named, goal, labels = head_maps(Path(folder), sample)
+        for c, (label, model, vocabulary) in enumerate(checkpoints):
+            named, goal, labels = head_maps(model, vocabulary, sample)
             cells = labels.landmark_cell_w[0]
             i = int(sample.instruction.landmark_index)
             for r, (image, what) in enumerate(((named, "P(named)"), (goal, "P(goal)"))):

@@ -42,7 +42,7 @@ class RelevanceFilter(nn.Module):
     """Maps (B, ..., C_in, H, W) and sentence embeddings (B, E) -> relevance maps (B, ..., C_out, H, W)."""
 
     def __init__(self, embed_dim: int, channels_in: int, channels_out: int, init_std: float = 0.001,
-                 slope: float = 0.01, activation: str = "sigmoid"):
+                 slope: float = 0.01, activation: str = "none"):
         super().__init__()
         self.channels_in, self.channels_out, self.slope, self.activation = channels_in, channels_out, slope, activation
         self.linear = _language_linear(embed_dim, channels_in * channels_out, init_std)
@@ -64,7 +64,7 @@ class GoalFilter(nn.Module):
     """Relevance maps (B, ..., C_r, H, W) and sentence embeddings (B, E) -> goal maps (B, ..., C_g, H, W)."""
 
     def __init__(self, embed_dim: int, channels_in: int = 3, channels_out: int = 2, dilation: int = 3,
-                 init_std: float = 0.001, slope: float = 0.01, activation: str = "sigmoid"):
+                 init_std: float = 0.001, slope: float = 0.01, activation: str = "none"):
         super().__init__()
         self.channels_in, self.channels_out, self.dilation, self.slope = channels_in, channels_out, dilation, slope
         self.activation = activation

@@ -17,6 +17,7 @@ containers only, never code.
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import time
@@ -52,7 +53,7 @@ EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
 
 def _is_extension(saved: dict, new: dict) -> bool:
     """`new` equals `saved` but for a length in EXTENDABLE that did not shrink (and at least one that grew)."""
-    trimmed_saved, trimmed_new = json.loads(json.dumps(saved)), json.loads(json.dumps(new))
+    trimmed_saved, trimmed_new = copy.deepcopy(saved), copy.deepcopy(new)
     grew = False
     for section, key in EXTENDABLE:
         old_value = trimmed_saved.get(section, {}).pop(key, None)
