@@ -168,6 +168,50 @@ def results_dict(system: str, checkpoint: str | None, records: list[EpisodeRecor
     }
 
 
+def _checkpoint_bytes(path: str | None) -> dict[str, bytes] | None:
+    folder = Path(path) if path else None
+    if folder is None or not folder.is_dir():
+        return None
+    return {f.name: f.read_bytes() for f in sorted(folder.iterdir()) if f.is_file() and f.name != "meta.json"}
+
+
+def merge_results(parts: Sequence[dict]) -> dict:
+    """One evaluation from several `results_dict`s of the same system, checkpoint and settings on disjoint
+    environments (an evaluation run in pieces), with the summary recomputed over all episodes.
+
+    Checkpoints named by different paths count as the same when their files (apart from meta.json) are
+    byte-identical. Raises ValueError for anything else, rather than mix results that are not comparable."""
+    if not parts:
+        raise ValueError("nothing to merge")
+    first = parts[0]
+    seen: set[int] = set()
+    for part in parts:
+        if part["system"] != first["system"]:
+            raise ValueError(f"different systems: {first['system']} and {part['system']}")
+        if part["config"] != first["config"]:
+            raise ValueError("the evaluations ran with different settings")
+        if part["checkpoint"] != first["checkpoint"]:
+            a, b = _checkpoint_bytes(first["checkpoint"]), _checkpoint_bytes(part["checkpoint"])
+            if a is None or a != b:
+                raise ValueError(f"different checkpoints: {first['checkpoint']} and {part['checkpoint']}")
+        overlap = seen.intersection(part["env_ids"])
+        if overlap:
+            raise ValueError(f"environments evaluated twice: {sorted(overlap)[:5]}")
+        seen.update(part["env_ids"])
+    episodes = [e for part in parts for e in part["episodes"]]
+    config = RunConfig.from_dict(first["config"])
+    return {
+        "system": first["system"], "checkpoint": first["checkpoint"],
+        "env_ids": [e for part in parts for e in part["env_ids"]],
+        "summary": summarize(episodes, config.task.success_radius).to_dict(),
+        "seconds": round(sum(part["seconds"] for part in parts), 2),
+        "workers": first["workers"], "machine": first["machine"], "config": first["config"],
+        "parts": [{"checkpoint": p["checkpoint"], "episodes": len(p["env_ids"]), "seconds": p["seconds"]}
+                  for p in parts],
+        "episodes": episodes,
+    }
+
+
 def write_json(path: Path, results: dict) -> None:
     """Write atomically: a killed run never leaves half a file where a good one was."""
     path = Path(path)

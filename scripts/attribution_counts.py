@@ -21,6 +21,26 @@ from gsmn.model.checkpoint import load_checkpoint
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def stage_counts(results: dict, recordings: Path, checkpoint: Path | None = None) -> tuple[dict[str, int], int]:
+    """Failures per attribution stage over an evaluation's episodes, and how many failures had no recording.
+
+    The checkpoint defaults to the one the evaluation names (or checkpoints/gsmn)."""
+    checkpoint = checkpoint or Path(results.get("checkpoint") or ROOT / "checkpoints" / "gsmn")
+    model, *_ = load_checkpoint(checkpoint)
+    heads = Heads.of(model)
+    config = RunConfig.from_dict(results["config"])
+    counts, missing = dict.fromkeys(STAGES, 0), 0
+    for record in results["episodes"]:
+        if record["success"]:
+            continue
+        path = trace_path(recordings, int(record["env_id"]))
+        if not path.is_file():
+            missing += 1
+            continue
+        counts[attribute_record(record, load_trace(path), heads, config).stage] += 1
+    return counts, missing
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, help="gsmn eval --json output")
@@ -28,23 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", type=Path, default=None)
     args = ap.parse_args(argv)
     results = json.loads(args.results.read_text())
-    checkpoint = args.checkpoint or Path(results.get("checkpoint") or ROOT / "checkpoints" / "gsmn")
-    model, *_ = load_checkpoint(checkpoint)
-    heads = Heads.of(model)
-    config = RunConfig.from_dict(results["config"])
-    counts, missing, failures, stopped_steps = dict.fromkeys(STAGES, 0), 0, 0, []
-    for record in results["episodes"]:
-        if record["stopped"]:
-            stopped_steps.append(record["steps"])
-        if record["success"]:
-            continue
-        failures += 1
-        path = trace_path(args.recordings, int(record["env_id"]))
-        if not path.is_file():
-            missing += 1
-            continue
-        counts[attribute_record(record, load_trace(path), heads, config).stage] += 1
-    print(f"{failures} failures of {len(results['episodes'])} episodes ({checkpoint}):")
+    counts, missing = stage_counts(results, args.recordings, args.checkpoint)
+    failures = sum(1 for r in results["episodes"] if not r["success"])
+    stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
+    print(f"{failures} failures of {len(results['episodes'])} episodes "
+          f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
     for stage in STAGES:
         print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
     if missing:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from gsmn.config import preset
-from gsmn.evaluation import evaluate, make_policy, parse_env_ids, table_row
+from gsmn.evaluation import evaluate, make_policy, merge_results, parse_env_ids, results_dict, table_row
 from gsmn.task.baselines import (
     AverageAction,
     AvgForwardPolicy,
@@ -106,6 +106,29 @@ def test_parse_env_ids_and_unknown_systems():
             parse_env_ids(bad)
     with pytest.raises(ValueError, match="unknown system 'gsmn-nope'"):
         make_policy("gsmn-nope", TINY)
+
+
+def test_an_evaluation_run_in_pieces_merges_into_the_whole(tmp_path):
+    ids = [70, 71, 72, 73, 74]
+    whole = results_dict("random-point", None, evaluate("random-point", ids, TINY), TINY, 1.0, 1)
+    first = results_dict("random-point", None, evaluate("random-point", ids[:2], TINY), TINY, 0.4, 1)
+    rest = results_dict("random-point", None, evaluate("random-point", ids[2:], TINY), TINY, 0.6, 1)
+    merged = merge_results([first, rest])
+    assert merged["env_ids"] == ids and merged["episodes"] == whole["episodes"]
+    assert merged["summary"] == whole["summary"] and merged["seconds"] == 1.0
+    with pytest.raises(ValueError, match="evaluated twice"):
+        merge_results([first, first])
+    with pytest.raises(ValueError, match="different systems"):
+        merge_results([first, {**rest, "system": "oracle"}])
+    # the same weights under two paths merge; different weights do not
+    a, b, c = (tmp_path / n for n in "abc")
+    for folder, weights in ((a, b"w1"), (b, b"w1"), (c, b"w2")):
+        folder.mkdir()
+        (folder / "weights.safetensors").write_bytes(weights)
+        (folder / "meta.json").write_text(json.dumps({"saved": str(folder)}))
+    assert merge_results([{**first, "checkpoint": str(a)}, {**rest, "checkpoint": str(b)}])["checkpoint"] == str(a)
+    with pytest.raises(ValueError, match="different checkpoints"):
+        merge_results([{**first, "checkpoint": str(a)}, {**rest, "checkpoint": str(c)}])
 
 
 def test_table_row_shows_pruned_figures_in_brackets():
