@@ -42,7 +42,8 @@ def compare(before: dict, after: dict) -> dict:
 def markdown(name: str, before: dict, after: dict, c: dict, stages: tuple[dict, dict] | None) -> str:
     b, a = before["summary"], after["summary"]
     n = len(before["episodes"])
-    lines = ["| episodes | | success % | landmark % | mean distance m | median distance m |", "|---|---|---|---|---|---|"]
+    lines = ["| episodes | | success % | landmark % | mean distance m | median distance m |",
+             "|---|---|---|---|---|---|"]
     for side, s, ckpt in (("before", b, before["checkpoint"]), ("after", a, after["checkpoint"])):
         p = s.get("pruned") or s
         lines.append(f"| {name} ({n}) | {side}: `{ckpt}` | {s['success']:.2f} ({p['success']:.2f}) | "
