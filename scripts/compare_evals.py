@@ -45,7 +45,7 @@ def markdown(name: str, before: dict, after: dict, c: dict, stages: tuple[dict, 
     lines = ["| episodes | | success % | landmark % | mean distance m | median distance m |",
              "|---|---|---|---|---|---|"]
     for side, s, ckpt in (("before", b, before["checkpoint"]), ("after", a, after["checkpoint"])):
-        p = s.get("pruned") or s
+        p, ckpt = s.get("pruned") or s, ckpt or "checkpoints/gsmn"
         lines.append(f"| {name} ({n}) | {side}: `{ckpt}` | {s['success']:.2f} ({p['success']:.2f}) | "
                      f"{s['landmark_success']:.2f} ({p['landmark_success']:.2f}) | {s['mean_distance']:.2f} | "
                      f"{s['median_distance']:.2f} |")
