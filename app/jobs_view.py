@@ -518,7 +518,7 @@ def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
     bars = []
     for stage in (*STAGES, "unattributed"):
         n = stages.get(stage, 0)
-        if stage == "unattributed" and not n:
+        if stage in ("unattributed", "goal_or_control") and not n:  # the latter only without J_plan
             continue
         width = 100 * n / failures if failures else 0
         bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
@@ -536,7 +536,7 @@ def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
 
 
 _STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
-                  "unattributed": "#999"}
+                  "goal_or_control": "#d35400", "unattributed": "#999"}
 
 
 def episode_label(r: EpisodeRow) -> str:
@@ -558,8 +558,9 @@ def episode_html(r: EpisodeRow, note: str) -> str:
                  ("grounded", ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
                      f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})"
                      if a.get("other_landmark") else ")")),
-                 ("goal map", ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m "
-                              f"from the goal, P {a['goal_peak_p']:.2f})")]
+                 ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
+                  else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
+                                                                    f"goal, P {a['goal_peak_p']:.2f})")]
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
     verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
                f"{html.escape(STAGE_TITLES.get(stage, stage))}</div>"

@@ -6,6 +6,7 @@
   relevance map; cells never observed are left transparent on the ground.
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
 - goal_robot: the same on the robot-frame goal map the controller reads (drone at the centre, facing up).
+  A model trained without J_plan has no trained goal head; its goal layers show channel 0 in both modes.
 
 The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
 model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
@@ -26,12 +27,14 @@ from app.colors import (
     semantic_rgb,
     softmax,
 )
+from gsmn.attribution import goal_head_trained
 from gsmn.world.landmarks import CATALOGUE
 
 LAYERS = ("semantic", "relevance", "goal", "goal_robot")
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
           "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
 VALUE_MODES = ("probability", "raw")
+NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
 RANGE_MODES = ("fixed", "frame")
 
 
@@ -46,6 +49,7 @@ class MapHeads:
     goal_w: np.ndarray
     goal_b: np.ndarray
     class_names: tuple[str, ...]
+    goal_trained: bool = True  # False without J_plan: P(goal) would be an untrained head's output
 
     @classmethod
     def of(cls, model) -> MapHeads:
@@ -56,7 +60,7 @@ class MapHeads:
 
         return cls(arr(heads.perception.weight), arr(heads.perception.bias), arr(heads.grounding.weight),
                    arr(heads.grounding.bias), arr(heads.goal.weight), arr(heads.goal.bias),
-                   tuple(m.noun_phrase for m in CATALOGUE))
+                   tuple(m.noun_phrase for m in CATALOGUE), goal_head_trained(model))
 
     @property
     def palette(self) -> np.ndarray:
@@ -115,6 +119,9 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
         goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
         labels = ("P(named)", "P(goal)", "P(goal)")
+        if not heads.goal_trained:  # no J_plan, no trained goal head: show what the controller reads instead
+            goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
+            labels = ("P(named)", NO_GOAL_HEAD, NO_GOAL_HEAD)
     else:
         relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
         labels = ("relevance channel 0", "goal channel 0", "goal channel 0")
@@ -155,7 +162,7 @@ class CellReport:
     observed: bool
     classes: tuple[tuple[str, float], ...]  # the perception head's three most likely landmarks
     p_named: float
-    p_goal: float
+    p_goal: float  # nan: the model has no trained goal head
     truth: str | None  # the landmark whose radius covers the cell centre, if any
 
 
@@ -173,7 +180,8 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
     cx, cy = (c + 0.5) * size, world.field_size - (r + 0.5) * size
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
     p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0]
-    p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0]
+    p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0] \
+        if heads.goal_trained else float("nan")
     return CellReport(r, c, cx, cy, bool(np.abs(feature).max() > 1e-6),
                       tuple((heads.class_names[k], float(probs[k])) for k in top), float(p_named), float(p_goal),
                       truth)

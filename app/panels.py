@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import base64
 import html
+import math
 
 from app.colors import data_uri, png_bytes
 from app.commands import Grounding
@@ -108,8 +109,9 @@ def inspector_markdown(report: CellReport | None, step: int) -> str:
     classes = ", ".join(f"{html.escape(name)} {p:.2f}" for name, p in report.classes)
     seen = "" if report.observed else " (not seen yet)"
     truth = f"**{html.escape(report.truth)}**" if report.truth else "open ground"
+    goal = "no P(goal) (trained without J_plan)" if math.isnan(report.p_goal) else f"P(goal) **{report.p_goal:.2f}**"
     return (f"**Cell ({report.row}, {report.col})** at x {report.x:.1f} m, y {report.y:.1f} m, step {step}{seen}: "
-            f"perception {classes}; P(named) **{report.p_named:.2f}**, P(goal) **{report.p_goal:.2f}**; "
+            f"perception {classes}; P(named) **{report.p_named:.2f}**, {goal}; "
             f"truly there: {truth}.")
 
 

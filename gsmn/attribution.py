@@ -13,6 +13,9 @@ traced to the first stage that went wrong, using the maps the model held when th
     control     the goal map was right and the drone still ended elsewhere: it stopped away from the goal, or
                 never stopped.
 
+A model trained without J_plan ("gsmn-no-plan") has a goal head that was never trained, so its P(goal) says
+nothing: for it the last two stages cannot be told apart, and a grounded failure is "goal_or_control".
+
 `attribute` is a pure function of those maps, the head weights, the WorldSpec and the instruction; it is unit
 tested on hand-made maps. `TraceRecorder` wraps a GSMN policy during evaluation to keep the final maps and a few
 numbers per step, and `save_trace` / `load_trace` store them (compressed .npz, float16 maps, never unpickled).
@@ -34,9 +37,9 @@ from gsmn.task.metrics import side_of
 from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.spec import WorldSpec, world_for_env
 
-STAGES = ("perception", "grounding", "goal", "control")
+STAGES = ("perception", "grounding", "goal", "control", "goal_or_control")
 STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
-                "control": "control"}
+                "control": "control", "goal_or_control": "goal or control"}
 
 
 class HeadWeights(Protocol):
@@ -48,6 +51,7 @@ class HeadWeights(Protocol):
     grounding_b: np.ndarray
     goal_w: np.ndarray
     goal_b: np.ndarray
+    goal_trained: bool  # False for a model trained without J_plan: its goal head is its initialisation
 
 
 @dataclass(frozen=True)
@@ -58,6 +62,7 @@ class Heads:
     grounding_b: np.ndarray
     goal_w: np.ndarray
     goal_b: np.ndarray
+    goal_trained: bool = True
 
     @classmethod
     def of(cls, model) -> Heads:
@@ -70,7 +75,12 @@ class Heads:
             return t.detach().cpu().float().numpy().copy()
 
         return cls(arr(h.perception.weight), arr(h.perception.bias), arr(h.grounding.weight),
-                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias))
+                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias), goal_head_trained(model))
+
+
+def goal_head_trained(model) -> bool:
+    """Whether the model's goal head was trained (J_plan on): not for "gsmn-no-plan"."""
+    return model.heads.goal is not None and model.kind != "gsmn-no-plan"
 
 
 @dataclass(frozen=True)
@@ -99,7 +109,7 @@ class Attribution:
     p_named: float  # P(named) at the landmark's cell
     p_named_other: float | None  # the highest P(named) at another landmark's cell (None: no other landmark)
     other_landmark: str | None  # ... and that landmark's name
-    goal_right: bool
+    goal_right: bool | None  # None: the model has no trained goal head
     goal_peak_x: float  # the cell centre of the highest P(goal)
     goal_peak_y: float
     goal_peak_p: float
@@ -189,6 +199,8 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
     start = (world.start_x, world.start_y)
     goal_right = math.dist((gx, gy), (target.x, target.y)) < success_radius and \
         side_of((target.x, target.y), start, (gx, gy)) == instruction.side
+    if not heads.goal_trained:
+        goal_right = None
     final_to_peak = math.dist(final_xy, (gx, gy))
 
     name = target.noun_phrase
@@ -202,6 +214,12 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
     elif not grounded:
         against = f"{best_other[0]:.2f} at the {best_other[1]}" if best_other else "under 0.5"
         stage, reason = "grounding", f"Perceived but not grounded: P(named) {p_named:.2f} at the {name}, {against}."
+    elif goal_right is None:
+        how = "stopped" if stopped else "never said STOP, and ended"
+        stage, reason = "goal_or_control", (
+            f"Grounded, but the drone {how} {math.dist(final_xy, instruction.goal):.1f} m from the goal. Trained "
+            f"without J_plan, this model's goal map has no trained reading: a misplaced goal and poor control look "
+            f"alike.")
     elif not goal_right:
         stage, reason = "goal", (f"Grounded, but the goal map peaks {math.dist((gx, gy), instruction.goal):.1f} m "
                                  f"from the true goal, where stopping would fail.")

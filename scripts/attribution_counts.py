@@ -54,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{failures} failures of {len(results['episodes'])} episodes "
           f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
     for stage in STAGES:
-        print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
+        if stage != "goal_or_control" or counts[stage]:  # that one only for a model trained without J_plan
+            print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
     if missing:
         print(f"  no recording    {missing}", file=sys.stderr)
     if stopped_steps:

@@ -53,7 +53,8 @@ def markdown(name: str, before: dict, after: dict, c: dict, stages: tuple[dict, 
               f"{c['landmark_broken']} lost); unambiguous subset in brackets."]
     if stages:
         lines += ["", "| failed because | before | after |", "|---|---|---|"]
-        lines += [f"| {k} | {stages[0][k]} | {stages[1][k]} |" for k in STAGES]
+        lines += [f"| {k} | {stages[0][k]} | {stages[1][k]} |" for k in STAGES
+                  if k != "goal_or_control" or stages[0][k] or stages[1][k]]  # that one only without J_plan
     return "\n".join(lines)
 
 

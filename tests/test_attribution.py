@@ -133,12 +133,24 @@ def test_a_right_goal_map_and_a_wrong_end_is_a_control_failure():
     assert b.stage == "control" and "never said STOP" in b.reason
 
 
+def test_without_a_trained_goal_head_goal_and_control_are_one_stage():
+    """A model trained without J_plan has an untrained goal head: its P(goal) must not decide the stage."""
+    untrained = dataclasses.replace(heads(), goal_trained=False)
+    wrong_side = (TARGET.x + 3.0, TARGET.y - 3.0)
+    for goal_xy in (None, wrong_side):  # "control" and "goal" with a trained head
+        a = attribute(maps_where(goal_xy=goal_xy), untrained, WORLD, INSTRUCTION, (25.0, 5.0), True, False)
+        assert a.stage == "goal_or_control" and a.goal_right is None and "J_plan" in a.reason
+    assert run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})).stage == "grounding"  # earlier stages stay
+    ok = attribute(maps_where(), untrained, WORLD, INSTRUCTION, tuple(INSTRUCTION.goal), True, True)
+    assert ok.stage is None
+
+
 def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
     ok = run(maps_where(), final=tuple(INSTRUCTION.goal), success=True)
     assert ok.stage is None and ok.goal_right and ok.final_to_peak < 1.0
     stages = [run(maps_where(perceive=None)), run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})),
               run(maps_where()), ok, None]
-    assert count_stages(stages) == {"perception": 1, "grounding": 1, "goal": 0, "control": 1}
+    assert count_stages(stages) == {"perception": 1, "grounding": 1, "goal": 0, "control": 1, "goal_or_control": 0}
     assert type(ok).from_dict(json.loads(json.dumps(ok.to_dict()))) == ok
 
 

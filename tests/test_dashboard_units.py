@@ -4,6 +4,7 @@ the success quadrant drawn on the ground, and the text the page shows."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import math
 import re
 
@@ -24,8 +25,16 @@ from app.colors import (
     upscale,
     with_alpha,
 )
-from app.layers import MapHeads, build_layers, positive_probability, world_cell
-from app.panels import camera_html, cell_marks_html, maps_html, other_side, readout_markdown, result_markdown
+from app.layers import MapHeads, build_layers, inspect_cell, positive_probability, world_cell
+from app.panels import (
+    camera_html,
+    cell_marks_html,
+    inspector_markdown,
+    maps_html,
+    other_side,
+    readout_markdown,
+    result_markdown,
+)
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import quadrant_angles
 from gsmn.config import preset
@@ -96,6 +105,24 @@ def _heads(C: int = 32) -> MapHeads:
                     np.array([[0, 0, 0], [1, 0, 0]], np.float32), np.zeros(2, np.float32),
                     np.array([[0, 0], [1, 0]], np.float32), np.zeros(2, np.float32),
                     tuple(m.noun_phrase for m in CATALOGUE))
+
+
+def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
+    """Trained without J_plan, the goal head is its initialisation: the goal layers show channel 0, labelled so,
+    and the cell inspector gives no P(goal)."""
+    heads = dataclasses.replace(_heads(), goal_trained=False)
+    semantic = np.full((32, 32, 32), 0.1, np.float16)
+    relevance = np.zeros((3, 32, 32), np.float32)
+    goal = np.zeros((2, 32, 32), np.float32)
+    goal[0, 3, 4], goal[1, 3, 4] = 7.0, -50.0  # a trained head [[0,0],[1,0]] would give P(goal) 1 there
+    goal_r = np.zeros((2, 64, 64), np.float32)
+    layers = build_layers(semantic, relevance, goal, goal_r, heads, "probability", "fixed")
+    assert layers["goal"].values[3, 4] == 7.0 and layers["goal"].values.max() == 7.0
+    assert "J_plan" in layers["goal"].legend_html and "J_plan" in layers["goal_robot"].legend_html
+    world = world_for_env(70, preset("tiny").world)
+    report = inspect_cell(world.landmarks[0].x, world.landmarks[0].y, semantic, relevance, goal, heads, world)
+    assert math.isnan(report.p_goal)
+    assert "no P(goal)" in inspector_markdown(report, 0)
 
 
 def test_positive_probability_is_the_binary_head_softmax():
