@@ -69,7 +69,11 @@ def main(argv: list[str] | None = None) -> None:
         ax.set(title=label, xlabel="Epoch", ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
         ax.grid(axis="y", ls="--", alpha=0.6)
     axes[0][0].set_ylabel("Dev accuracy")
-    axes[0][-1].legend(loc="lower right", fontsize=8)
+    handles = {}  # every curve drawn in any panel (a run without J_plan has no goal curve), once each
+    for ax in axes[0]:
+        for handle, name in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(name, handle)
+    axes[0][-1].legend(handles.values(), handles.keys(), loc="lower right", fontsize=8)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

@@ -187,7 +187,7 @@ def test_learned_systems_load_from_checkpoints(tmp_path):
         make_policy("gsmn", TINY, tmp_path / "missing")
 
 
-@pytest.mark.parametrize("system", ["gsmn", "gs-fpv-mem", "gs-fpv"])  # add gsmn-no-plan once it is shipped
+@pytest.mark.parametrize("system", ["gsmn", "gs-fpv-mem", "gs-fpv", "gsmn-no-plan"])
 def test_each_shipped_checkpoint_flies_as_its_own_system(system):
     """`gsmn eval --system S` with no --checkpoint flies checkpoints/S: it must hold an S model that runs."""
     policy = make_policy(system, TINY)
