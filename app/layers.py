@@ -99,7 +99,8 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
     # On the ground a scalar map is a heat overlay: opacity grows with the value, so the field and the
     # landmarks show through where the map is low.
     heat = 0.12 + 0.88 * np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
-    return Layer(name, TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
+    title = "Goal: channel 0 (no goal head, no J_plan)" if name == "goal" and label == NO_GOAL_HEAD else TITLES[name]
+    return Layer(name, title, apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,

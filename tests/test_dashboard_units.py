@@ -119,6 +119,7 @@ def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
     layers = build_layers(semantic, relevance, goal, goal_r, heads, "probability", "fixed")
     assert layers["goal"].values[3, 4] == 7.0 and layers["goal"].values.max() == 7.0
     assert "J_plan" in layers["goal"].legend_html and "J_plan" in layers["goal_robot"].legend_html
+    assert "P(goal)" not in layers["goal"].title and "J_plan" in layers["goal"].title
     world = world_for_env(70, preset("tiny").world)
     report = inspect_cell(world.landmarks[0].x, world.landmarks[0].y, semantic, relevance, goal, heads, world)
     assert math.isnan(report.p_goal)
