@@ -27,7 +27,7 @@ from app.jobs import RUN_PRESETS, JobManager, run_settings
 from app.jobs_api import replay_policy
 from app.panels import error_html
 from app.recording import Episode
-from gsmn.attribution import STAGE_TITLES, STAGES
+from gsmn.attribution import STAGE_TITLES, STAGES, reported_stages
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS
 
@@ -516,9 +516,9 @@ def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
     s = e.summary or {}
     failures = sum(stages.values())
     bars = []
-    for stage in (*STAGES, "unattributed"):
+    for stage in (*reported_stages(stages), "unattributed"):
         n = stages.get(stage, 0)
-        if stage in ("unattributed", "goal_or_control") and not n:  # the latter only without J_plan
+        if stage == "unattributed" and not n:
             continue
         width = 100 * n / failures if failures else 0
         bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'

@@ -34,8 +34,8 @@ LAYERS = ("semantic", "relevance", "goal", "goal_robot")
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
           "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
 VALUE_MODES = ("probability", "raw")
-NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
 RANGE_MODES = ("fixed", "frame")
+NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,8 @@ class Layer:
     values: np.ndarray | None = None  # (H, W) the scalar shown, for inspection
 
 
-def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: str, label: str) -> Layer:
+def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: str, label: str,
+                  title: str | None = None) -> Layer:
     if range_mode == "fixed" and label.startswith("P("):
         vmin, vmax = 0.0, 1.0
     else:
@@ -99,8 +100,7 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
     # On the ground a scalar map is a heat overlay: opacity grows with the value, so the field and the
     # landmarks show through where the map is low.
     heat = 0.12 + 0.88 * np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
-    title = "Goal: channel 0 (no goal head, no J_plan)" if name == "goal" and label == NO_GOAL_HEAD else TITLES[name]
-    return Layer(name, title, apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
+    return Layer(name, title or TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
@@ -115,21 +115,23 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
     semantic = Layer("semantic", TITLES["semantic"], semantic_rgb(classes, confidence, observed, palette),
                      observed.astype(np.float32),
                      semantic_legend_html(classes, observed, palette, list(heads.class_names)), confidence)
-    if value_mode == "probability":
+    goal_title = None
+    if value_mode == "probability" and not heads.goal_trained:  # no J_plan: show what the controller reads
+        relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
+        goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
+        labels, goal_title = ("P(named)", NO_GOAL_HEAD, NO_GOAL_HEAD), "Goal: channel 0 (no goal head, no J_plan)"
+    elif value_mode == "probability":
         relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
         goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
         goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
         labels = ("P(named)", "P(goal)", "P(goal)")
-        if not heads.goal_trained:  # no J_plan, no trained goal head: show what the controller reads instead
-            goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
-            labels = ("P(named)", NO_GOAL_HEAD, NO_GOAL_HEAD)
     else:
         relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
         labels = ("relevance channel 0", "goal channel 0", "goal channel 0")
     ones = np.ones(goal.shape, np.float32)
     out = {"semantic": semantic,
            "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0]),
-           "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1]),
+           "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1], goal_title),
            "goal_robot": _scalar_layer("goal_robot", goal_robot, np.ones(goal_robot.shape, np.float32), range_mode,
                                        labels[2])}
     mark_drone(out["goal_robot"].rgb)

@@ -42,6 +42,12 @@ STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goa
                 "control": "control", "goal_or_control": "goal or control"}
 
 
+def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:
+    """The stages to list for these counts: "goal_or_control" only where some count has it (a model trained
+    without J_plan), so tables of GSMN failures keep their four rows."""
+    return tuple(k for k in STAGES if k != "goal_or_control" or any(c.get(k, 0) for c in counts))
+
+
 class HeadWeights(Protocol):
     """The auxiliary heads as arrays, weight (K, C) and bias (K,) (app.layers.MapHeads has these)."""
 
@@ -197,10 +203,10 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
     gr, gc, gp = goal_peak(maps.goal_map_w, heads)
     gx, gy = cell_centre(gr, gc, F, n)
     start = (world.start_x, world.start_y)
-    goal_right = math.dist((gx, gy), (target.x, target.y)) < success_radius and \
-        side_of((target.x, target.y), start, (gx, gy)) == instruction.side
-    if not heads.goal_trained:
-        goal_right = None
+    goal_right = None  # no trained goal head (no J_plan): its peak says nothing
+    if heads.goal_trained:
+        goal_right = math.dist((gx, gy), (target.x, target.y)) < success_radius and \
+            side_of((target.x, target.y), start, (gx, gy)) == instruction.side
     final_to_peak = math.dist(final_xy, (gx, gy))
 
     name = target.noun_phrase

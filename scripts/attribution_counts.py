@@ -14,7 +14,15 @@ import json
 import sys
 from pathlib import Path
 
-from gsmn.attribution import STAGE_TITLES, STAGES, Heads, attribute_record, load_trace, trace_path
+from gsmn.attribution import (
+    STAGE_TITLES,
+    STAGES,
+    Heads,
+    attribute_record,
+    load_trace,
+    reported_stages,
+    trace_path,
+)
 from gsmn.config import RunConfig
 from gsmn.model.checkpoint import load_checkpoint
 
@@ -53,9 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
     print(f"{failures} failures of {len(results['episodes'])} episodes "
           f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
-    for stage in STAGES:
-        if stage != "goal_or_control" or counts[stage]:  # that one only for a model trained without J_plan
-            print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
+    for stage in reported_stages(counts):
+        print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
     if missing:
         print(f"  no recording    {missing}", file=sys.stderr)
     if stopped_steps:

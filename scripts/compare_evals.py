@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from gsmn.attribution import STAGES
+from gsmn.attribution import STAGES, reported_stages
 from gsmn.evaluation import merge_results
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -53,8 +53,7 @@ def markdown(name: str, before: dict, after: dict, c: dict, stages: tuple[dict, 
               f"{c['landmark_broken']} lost); unambiguous subset in brackets."]
     if stages:
         lines += ["", "| failed because | before | after |", "|---|---|---|"]
-        lines += [f"| {k} | {stages[0][k]} | {stages[1][k]} |" for k in STAGES
-                  if k != "goal_or_control" or stages[0][k] or stages[1][k]]  # that one only without J_plan
+        lines += [f"| {k} | {stages[0][k]} | {stages[1][k]} |" for k in reported_stages(*stages)]
     return "\n".join(lines)
 
 

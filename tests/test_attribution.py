@@ -24,6 +24,7 @@ from gsmn.attribution import (
     cell_of,
     count_stages,
     load_trace,
+    reported_stages,
     save_trace,
     trace_path,
 )
@@ -143,6 +144,9 @@ def test_without_a_trained_goal_head_goal_and_control_are_one_stage():
     assert run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})).stage == "grounding"  # earlier stages stay
     ok = attribute(maps_where(), untrained, WORLD, INSTRUCTION, tuple(INSTRUCTION.goal), True, True)
     assert ok.stage is None
+    gsmn_counts = dict.fromkeys(STAGES, 1) | {"goal_or_control": 0}
+    assert reported_stages(gsmn_counts) == ("perception", "grounding", "goal", "control")  # tables keep 4 rows
+    assert reported_stages(gsmn_counts, {"goal_or_control": 3})[-1] == "goal_or_control"
 
 
 def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
