@@ -204,6 +204,10 @@ def cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+INIT_OPTIMIZER_HELP = ("also start Adam from the optimizer state saved in the --init checkpoint (its optimizer.pt), "
+                       "to go on training as if the earlier run had not stopped; with this run's learning rate")
+
+
 # -- gsmn train -------------------------------------------------------------------------------------
 def cmd_train_supervised(args: argparse.Namespace) -> int:
     from gsmn.model.runtime import keep_freed_memory
@@ -221,7 +225,7 @@ def cmd_train_supervised(args: argparse.Namespace) -> int:
         checkpoint = train_supervised(Path(args.run), args.kind, config, EpisodeStore(args.data),
                                       EpisodeStore(args.dev) if args.dev else None,
                                       init=Path(args.init) if args.init else None, log=_above(bars),
-                                      on_progress=bars)
+                                      on_progress=bars, init_optimizer=args.init_optimizer)
     finally:
         bars.close()
     print(f"checkpoint: {checkpoint}")
@@ -248,7 +252,7 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     try:
         checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
                                   EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids, log=_above(bars),
-                                  on_progress=bars)
+                                  on_progress=bars, init_optimizer=args.init_optimizer)
     finally:
         bars.close()
     print(f"checkpoint: {checkpoint}")
@@ -350,6 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "an existing run resumes where it stopped")
     t.add_argument("--kind", default="gsmn", help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem")
     t.add_argument("--init", default=None, help="start from this checkpoint's weights")
+    t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_supervised)
     t = train_sub.add_parser("dagger", help="DAggerFM from a supervised checkpoint (paper Algorithm 1), resumable")
@@ -358,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--dev", default=None, help="episode store validated on after every iteration")
     t.add_argument("--run", required=True, help="run folder (holds the dataset of M rollouts); resumes")
     t.add_argument("--env-ids", default=None, help="environments for rollouts (default: those of --data)")
+    t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_dagger)
 

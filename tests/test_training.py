@@ -15,12 +15,12 @@ import torch
 from safetensors.torch import load_file
 
 from gsmn.config import preset, with_overrides
-from gsmn.model.checkpoint import load_checkpoint
+from gsmn.model.checkpoint import CheckpointError, load_checkpoint
 from gsmn.training.collect import collect_expert
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunError, RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
-from gsmn.training.supervised import train_supervised
+from gsmn.training.supervised import make_model_and_optimizer, train_supervised
 
 # Short episodes (the first 20 steps of the expert's flight) keep these tests to seconds.
 FLAGS = {"task.horizon": "20", "train.epochs": "3", "train.batch_size": "2", "train.save_every_seconds": "0"}
@@ -88,6 +88,33 @@ def test_a_run_from_a_checkpoint_keeps_the_checkpoints_architecture(stores, tmp_
     model, config, _, _ = load_checkpoint(end)
     assert config.model == sigmoid.model and model.goal_filter.activation == "sigmoid"
     assert json.loads((tmp_path / "continued" / "config.json").read_text())["model"]["filter_activation"] == "sigmoid"
+
+
+def test_a_run_from_a_checkpoint_can_go_on_with_its_optimizer_state(stores, tmp_path):
+    """A run's checkpoint holds its Adam state; --init-optimizer starts the next run's Adam from it (moments and
+    step counts) at the next run's learning rate. Without the flag Adam starts fresh; a checkpoint saved without
+    optimizer state is refused by name."""
+    train, _ = stores
+    one = with_overrides(CONFIG, {"train.epochs": "1"})
+    start = train_supervised(tmp_path / "first", "gsmn", one, train, log=lambda s: None)
+    saved = torch.load(start / "optimizer.pt", weights_only=True)
+    in_run = torch.load(tmp_path / "first" / "state" / "optimizer.pt", weights_only=True)
+    assert saved["state"] and saved["state"].keys() == in_run["state"].keys()
+    slower = with_overrides(one, {"train.learning_rate": "0.0001"})
+    _, _, optimizer = make_model_and_optimizer("gsmn", slower, start, init_optimizer=True)
+    state = optimizer.state_dict()
+    assert {g["lr"] for g in state["param_groups"]} == {0.0001}
+    for key, value in saved["state"].items():
+        assert float(state["state"][key]["step"]) == float(value["step"]) == 2.0  # 4 episodes, batches of 2
+        torch.testing.assert_close(state["state"][key]["exp_avg_sq"], value["exp_avg_sq"])
+    assert not make_model_and_optimizer("gsmn", slower, start)[2].state_dict()["state"]
+    end = train_supervised(tmp_path / "continued", "gsmn", slower, train, init=start, init_optimizer=True,
+                           log=lambda s: None)
+    after = torch.load(end / "optimizer.pt", weights_only=True)
+    assert {float(v["step"]) for v in after["state"].values()} == {4.0}  # it went on counting
+    (start / "optimizer.pt").unlink()
+    with pytest.raises(CheckpointError, match="holds no optimizer state"):
+        train_supervised(tmp_path / "refused", "gsmn", slower, train, init=start, init_optimizer=True)
 
 
 def _cli(run: Path, data: Path) -> list[str]:

@@ -4,6 +4,9 @@
     config.json           the resolved RunConfig (RunConfig.to_dict)
     vocabulary.json       the word list the token ids refer to
     meta.json             {"format", "kind", "created", "code_version", "metrics", ...free-form}
+    optimizer.pt          optional: the training run's optimizer state (torch.save of tensors and plain
+                          containers, read with weights_only=True), so that training can go on from the
+                          checkpoint as if it had not stopped (`gsmn train ... --init C --init-optimizer`)
 
 `save_checkpoint` writes into a temporary sibling folder and renames it into place, so a reader never sees a
 half-written checkpoint. `load_checkpoint` raises `CheckpointError` naming the folder and what is wrong for a
@@ -33,6 +36,7 @@ from gsmn.model.vocabulary import Vocabulary
 
 FORMAT = 1
 FILES = ("weights.safetensors", "config.json", "vocabulary.json", "meta.json")
+OPTIMIZER_FILE = "optimizer.pt"
 
 
 class CheckpointError(ValueError):
@@ -50,9 +54,10 @@ def code_version() -> str:
 
 
 def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabulary: Vocabulary,
-                    meta: dict[str, Any] | None = None) -> Path:
+                    meta: dict[str, Any] | None = None, optimizer_state: dict[str, Any] | None = None) -> Path:
     """Write a checkpoint folder atomically (replacing an existing checkpoint there). `meta` is free-form JSON
-    (e.g. {"metrics": {...}, "epoch": 3}); kind, created, code_version and format are filled in."""
+    (e.g. {"metrics": {...}, "epoch": 3}); kind, created, code_version and format are filled in.
+    `optimizer_state` (an optimizer's state_dict) is written beside the weights when given."""
     folder = Path(folder)
     if config.model != model.config.model or config.world.field_size != model.config.world.field_size \
             or (config.camera.width, config.camera.height) != model.image_size:
@@ -71,6 +76,8 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
         (tmp / "config.json").write_text(config.to_json() + "\n")
         (tmp / "vocabulary.json").write_text(vocabulary.to_json() + "\n")
         (tmp / "meta.json").write_text(json.dumps(full_meta, indent=1, sort_keys=True) + "\n")
+        if optimizer_state is not None:
+            torch.save(optimizer_state, tmp / OPTIMIZER_FILE)
         if folder.exists():
             old = folder.parent / f".{folder.name}.old-{uuid.uuid4().hex[:8]}"
             os.rename(folder, old)
@@ -112,6 +119,19 @@ def with_model_of(config: RunConfig, init: str | Path) -> RunConfig:
     architecture its weights were trained with (the kernels' activation, say, which no weight shape reveals), and
     its own checkpoints record it."""
     return dataclasses.replace(config, model=read_checkpoint_config(init).model)
+
+
+def load_optimizer_state(folder: str | Path) -> dict[str, Any]:
+    """The optimizer state saved in a checkpoint folder (tensors and plain containers only: never code)."""
+    path = Path(folder) / OPTIMIZER_FILE
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {folder}: holds no optimizer state ({OPTIMIZER_FILE}); it was saved "
+                              "without one, so training from it must start a fresh optimizer (leave out "
+                              "--init-optimizer)")
+    try:
+        return torch.load(path, weights_only=True)
+    except Exception as e:  # unpickling errors come in many types
+        raise CheckpointError(f"checkpoint {folder}: {OPTIMIZER_FILE} is unreadable ({e})") from e
 
 
 def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"

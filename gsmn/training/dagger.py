@@ -74,17 +74,20 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
 # -- the algorithm ----------------------------------------------------------------------------------
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
-                 stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None) -> Path:
+                 stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
+                 init_optimizer: bool = False) -> Path:
     """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
 
-    Rollouts are drawn from `env_ids` (default: the environments of the expert store)."""
+    Rollouts are drawn from `env_ids` (default: the environments of the expert store). With `init_optimizer`,
+    Adam starts from the optimizer state saved in `init` (a run continued from an earlier run's checkpoint keeps
+    its optimizer, as Algorithm 1's iterations do), else fresh."""
     torch.set_num_threads(config.train.threads)
     config = with_model_of(config, init)
     dc, seed = config.dagger, config.train.seed
     run = RunFolder(run_dir)
     run.start(config)
     dataset = EpisodeStore(run.root / "dataset")
-    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init)
+    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init, init_optimizer)
     if run.has_state():
         state = run.load_state(model, optimizer)
     else:

@@ -19,7 +19,7 @@ import torch
 
 from gsmn.config import RunConfig
 from gsmn.model.batch import collate
-from gsmn.model.checkpoint import load_checkpoint, save_checkpoint, with_model_of
+from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_optimizer_state, save_checkpoint, with_model_of
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
 from gsmn.model.vocabulary import Vocabulary
@@ -95,8 +95,11 @@ def _means(sums: dict[str, float], counts: dict[str, int]) -> dict[str, float]:
     return {name: sums[name] / counts[name] for name in sums}
 
 
-def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None
+def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, init_optimizer: bool = False
                              ) -> tuple[Model, Vocabulary, torch.optim.Optimizer]:
+    """The model (from `init`'s weights, or fresh from the config's seed) and its Adam. With `init_optimizer`,
+    Adam starts from the state saved in `init` (its moments and step counts), with this config's learning rate
+    and weight decay."""
     if init is not None:
         model, _, vocabulary, _ = load_checkpoint(init)
         if model.kind != kind:
@@ -107,6 +110,17 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None
         model = build_model(kind, config, vocabulary)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.learning_rate,
                                  weight_decay=config.train.weight_decay)
+    if init_optimizer:
+        if init is None:
+            raise ValueError("init_optimizer needs a checkpoint to start from (--init)")
+        try:
+            optimizer.load_state_dict(load_optimizer_state(init))
+        except ValueError as e:  # parameter groups or sizes that do not match this model
+            if isinstance(e, CheckpointError):
+                raise
+            raise CheckpointError(f"checkpoint {init}: its optimizer state does not fit the model ({e})") from e
+        for group in optimizer.param_groups:
+            group.update(lr=config.train.learning_rate, weight_decay=config.train.weight_decay)
     return model, vocabulary, optimizer
 
 
@@ -153,7 +167,8 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
         record["dev"] = validate(model, dev_store, vocabulary, config, config.train.batch_size)
     run.log(record)
     log(_summary_line(record))
-    save_checkpoint(run.checkpoint_dir, model, config, vocabulary, meta={"step": state.step, "metrics": record})
+    save_checkpoint(run.checkpoint_dir, model, config, vocabulary, meta={"step": state.step, "metrics": record},
+                    optimizer_state=optimizer.state_dict())
     state.epoch, state.batch, state.sums, state.counts = state.epoch + 1, 0, {}, {}
     run.save_state(model, optimizer, state)
 
@@ -161,8 +176,9 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
 def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_store: EpisodeStore,
                      dev_store: EpisodeStore | None = None, init: Path | None = None,
                      log: Logger = print, stop_after: Callable[[TrainState], bool] | None = None,
-                     on_progress: Progress | None = None) -> Path:
-    """Train (or resume training) `kind` on `train_store`; returns the checkpoint folder.
+                     on_progress: Progress | None = None, init_optimizer: bool = False) -> Path:
+    """Train (or resume training) `kind` on `train_store`; returns the checkpoint folder. With `init_optimizer`,
+    a new run's Adam starts from the optimizer state saved in the checkpoint `init`.
 
     `stop_after(state)` is asked after every saved state and may end the call early (the run stays
     resumable); tests use it, the command line does not."""
@@ -171,7 +187,7 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
         config = with_model_of(config, init)
     run = RunFolder(run_dir)
     run.start(config)
-    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
+    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init, init_optimizer)
     state = run.load_state(model, optimizer) if run.has_state() else TrainState()
     run.trim_log(state.epoch)
     keys = train_store.keys()
