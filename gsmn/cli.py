@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from gsmn.config import PRESETS, ConfigError, RunConfig, leaf_fields, preset, with_overrides
@@ -384,9 +386,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _exit_on_sigterm(signum: int, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # `kill PID` ends a command the way Ctrl-C does: cleanup runs, so `collect`, `eval` and `train dagger` shut
+    # their worker processes down instead of leaving them orphaned. Saved work is written atomically either way.
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if threading.current_thread() is \
+        threading.main_thread() else None
     try:
         return args.func(args)
     except (ConfigError, ValueError, FileNotFoundError) as e:
@@ -395,6 +405,9 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         return 0
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

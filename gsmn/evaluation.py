@@ -137,12 +137,15 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
             _worker.pop("env").close()
         return records
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                             initargs=(system, config, checkpoint, render, 1, record_dir)) as pool:  # a core each
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
+                               initargs=(system, config, checkpoint, render, 1, record_dir))  # a core each
+    try:
         for record in pool.map(_run_one, env_ids):
             records.append(record)
             if on_episode:
                 on_episode(record)
+    finally:  # stopped early (SIGTERM, Ctrl-C, an error): finish the episodes in flight, start no more
+        pool.shutdown(cancel_futures=True)
     return records
 
 

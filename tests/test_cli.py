@@ -1,6 +1,13 @@
-"""The command line: every subcommand's help renders (config help strings may hold '%')."""
+"""The command line: every subcommand's help renders (config help strings may hold '%'), and `kill PID` stops a
+command that runs worker processes without leaving them behind."""
 
 from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -19,3 +26,54 @@ def test_help_renders(command, capsys):
     assert out.startswith("usage: gsmn " + " ".join(command))
     if command[0] in ("eval", "collect", "train"):
         assert "--train.batch-size" in out
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_sigterm_stops_collect_and_its_workers(tmp_path):
+    """SIGTERM to `gsmn collect` (2 workers, 40 episodes) after its first episode: it exits with 128 + 15 soon,
+    without flying the rest, its worker processes are gone, and the episodes written are whole (they load)."""
+    store = tmp_path / "store"
+    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "collect", "--preset", "tiny", "--out", str(store),
+                             "--env-ids", "0:40", "--workers", "2", "--task.horizon", "20"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 240
+        while not list(store.glob("*.npz")):
+            assert proc.poll() is None and time.monotonic() < deadline, "collect ended or stalled before an episode"
+            time.sleep(0.2)
+        workers = [c for c in _children(proc.pid) if "spawn_main" in (Path("/proc") / str(c) / "cmdline").read_text()]
+        assert len(workers) == 2
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    deadline = time.monotonic() + 10
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "worker processes outlived the command"
+    from gsmn.training.store import EpisodeStore
+
+    written = EpisodeStore(store)
+    assert 1 <= len(written) < 40
+    for key in written.keys():
+        assert len(written.read(key).images) > 0

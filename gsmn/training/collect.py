@@ -117,9 +117,12 @@ def collect_expert(store: EpisodeStore, env_ids: Sequence[int], config: RunConfi
             _worker.pop("env").close()
         return todo
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                             initargs=(config, str(store.root))) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
+                               initargs=(config, str(store.root)))
+    try:
         for env_id, frames in pool.map(_collect_one, todo):
             if on_episode:
                 on_episode(env_id, frames)
+    finally:  # stopped early (SIGTERM, Ctrl-C, an error): finish the episodes in flight, start no more
+        pool.shutdown(cancel_futures=True)
     return todo

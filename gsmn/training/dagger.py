@@ -150,8 +150,8 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 if stop_after and stop_after(state):
                     break
     finally:
-        if pool is not None:
-            pool.shutdown()
+        if pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
+            pool.shutdown(cancel_futures=True)
     if state.epoch >= dc.iterations:
         _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
                 force=True)
