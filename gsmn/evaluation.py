@@ -172,17 +172,21 @@ def results_dict(system: str, checkpoint: str | None, records: list[EpisodeRecor
 
 
 def _checkpoint_bytes(path: str | None) -> dict[str, bytes] | None:
+    """The bytes of the checkpoint files that decide what is evaluated: weights, config and vocabulary (not
+    meta.json, nor an optimizer state or other files beside them)."""
+    from gsmn.model.checkpoint import FILES
+
     folder = Path(path) if path else None
     if folder is None or not folder.is_dir():
         return None
-    return {f.name: f.read_bytes() for f in sorted(folder.iterdir()) if f.is_file() and f.name != "meta.json"}
+    return {name: (folder / name).read_bytes() for name in FILES if name != "meta.json" and (folder / name).is_file()}
 
 
 def merge_results(parts: Sequence[dict]) -> dict:
     """One evaluation from several `results_dict`s of the same system, checkpoint and settings on disjoint
     environments (an evaluation run in pieces), with the summary recomputed over all episodes.
 
-    Checkpoints named by different paths count as the same when their files (apart from meta.json) are
+    Checkpoints named by different paths count as the same when their weights, config and vocabulary files are
     byte-identical. Raises ValueError for anything else, rather than mix results that are not comparable."""
     if not parts:
         raise ValueError("nothing to merge")

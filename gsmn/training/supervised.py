@@ -113,11 +113,10 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, in
     if init_optimizer:
         if init is None:
             raise ValueError("init_optimizer needs a checkpoint to start from (--init)")
+        saved = load_optimizer_state(init)
         try:
-            optimizer.load_state_dict(load_optimizer_state(init))
+            optimizer.load_state_dict(saved)
         except ValueError as e:  # parameter groups or sizes that do not match this model
-            if isinstance(e, CheckpointError):
-                raise
             raise CheckpointError(f"checkpoint {init}: its optimizer state does not fit the model ({e})") from e
         for group in optimizer.param_groups:
             group.update(lr=config.train.learning_rate, weight_decay=config.train.weight_decay)
