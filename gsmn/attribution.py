@@ -11,7 +11,8 @@ traced to the first stage that went wrong, using the maps the model held when th
     goal        was the goal placed right: stopping at the peak of P(goal) from the goal head would have been a
                 success (within the landmark region and in the quadrant asked);
     control     the goal map was right and the drone still ended elsewhere: it stopped away from the goal, or
-                never stopped.
+                never stopped. Where the drone's final heading is known, the reason says which way: it stopped
+                short (the peak ahead of it), overshot (behind it), or passed beside it (to its left or right).
 
 A model trained without J_plan ("gsmn-no-plan") has a goal head that was never trained, so its P(goal) says
 nothing: for it the last two stages cannot be told apart, and a grounded failure is "goal_or_control".
@@ -38,6 +39,7 @@ from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.spec import WorldSpec, world_for_env
 
 STAGES = ("perception", "grounding", "goal", "control", "goal_or_control")
+BEARINGS = ("ahead", "behind", "left", "right")  # 90-degree sectors around the drone's heading
 STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
                 "control": "control", "goal_or_control": "goal or control"}
 
@@ -122,6 +124,7 @@ class Attribution:
     goal_peak_error: float  # m from that peak to the true goal
     stopped: bool
     final_to_peak: float  # m from where the drone ended to the goal peak
+    peak_bearing: str | None = None  # where that peak lay from the drone's final pose: BEARINGS; None: no heading
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -162,6 +165,24 @@ def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:
     return np.abs(semantic_map_w.astype(np.float32)).max(0) > 1e-6
 
 
+def bearing(from_xy: tuple[float, float], yaw: float, to_xy: tuple[float, float]) -> str:
+    """Which of BEARINGS a point lies in as seen from a pose (x east, y north, yaw counter-clockwise from east):
+    90-degree sectors centred on the heading ("ahead"), its opposite, and the two sides."""
+    dx, dy = to_xy[0] - from_xy[0], to_xy[1] - from_xy[1]
+    along = dx * math.cos(yaw) + dy * math.sin(yaw)
+    across = -dx * math.sin(yaw) + dy * math.cos(yaw)  # > 0: counter-clockwise of the heading, on the left
+    if along >= abs(across):
+        return "ahead"
+    if -along >= abs(across):
+        return "behind"
+    return "left" if across > 0 else "right"
+
+
+_MISSED = {"ahead": "stopped {d:.1f} m short of it (the peak ahead)", "behind": "overshot it by {d:.1f} m (the peak "
+           "behind)", "left": "stopped {d:.1f} m beside it (the peak to its left)",
+           "right": "stopped {d:.1f} m beside it (the peak to its right)"}
+
+
 def goal_peak(goal_map_w: np.ndarray, heads: HeadWeights) -> tuple[int, int, float]:
     """(row, col, P(goal)) of the cell with the highest P(goal)."""
     p = positive_probability(goal_map_w, heads.goal_w, heads.goal_b)
@@ -171,11 +192,11 @@ def goal_peak(goal_map_w: np.ndarray, heads: HeadWeights) -> tuple[int, int, flo
 
 # -- the attribution ----------------------------------------------------------------------------------------------
 def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction: Instruction,
-              final_xy: tuple[float, float], stopped: bool, success: bool, success_radius: float = 6.0
-              ) -> Attribution:
+              final_xy: tuple[float, float], stopped: bool, success: bool, success_radius: float = 6.0,
+              final_yaw: float | None = None) -> Attribution:
     """Attribute an episode's outcome to the first stage of the pipeline the model got wrong (see the module
     docstring). `success` is the episode's own metric; for a success the stage is None and the evidence is
-    still filled in."""
+    still filled in. `final_yaw` (radians), where known, says which way a control failure missed the peak."""
     F = world.field_size
     n = maps.semantic_map_w.shape[-1]
     target = world.landmarks[instruction.landmark_index]
@@ -208,6 +229,7 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         goal_right = math.dist((gx, gy), (target.x, target.y)) < success_radius and \
             side_of((target.x, target.y), start, (gx, gy)) == instruction.side
     final_to_peak = math.dist(final_xy, (gx, gy))
+    peak_bearing = None if final_yaw is None else bearing(final_xy, final_yaw, (gx, gy))
 
     name = target.noun_phrase
     if success:
@@ -230,7 +252,12 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         stage, reason = "goal", (f"Grounded, but the goal map peaks {math.dist((gx, gy), instruction.goal):.1f} m "
                                  f"from the true goal, where stopping would fail.")
     else:
-        how = f"stopped {final_to_peak:.1f} m from it" if stopped else "never said STOP"
+        if not stopped:
+            how = "never said STOP"
+        elif peak_bearing is None:
+            how = f"stopped {final_to_peak:.1f} m from it"
+        else:
+            how = _MISSED[peak_bearing].format(d=final_to_peak)
         stage, reason = "control", f"The goal map was right, but the drone {how}."
     return Attribution(
         stage=stage, reason=reason, landmark_row=r, landmark_col=c, observed=observed, perceived=perceived,
@@ -238,7 +265,7 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         p_named=p_named, p_named_other=best_other[0] if best_other else None,
         other_landmark=best_other[1] if best_other else None, goal_right=goal_right, goal_peak_x=gx, goal_peak_y=gy,
         goal_peak_p=gp, goal_peak_error=math.dist((gx, gy), instruction.goal), stopped=stopped,
-        final_to_peak=final_to_peak)
+        final_to_peak=final_to_peak, peak_bearing=peak_bearing)
 
 
 def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config: RunConfig) -> Attribution:
@@ -249,8 +276,10 @@ def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config
                               noun_phrase=record["noun_phrase"], side=record["side"],
                               goal_x=float(record["goal_x"]), goal_y=float(record["goal_y"]),
                               ambiguous=bool(record["ambiguous"]))
+    trajectory = record.get("trajectory") or []
+    final_yaw = float(trajectory[-1][3]) if trajectory and len(trajectory[-1]) > 3 else None
     return attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
-                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius)
+                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius, final_yaw)
 
 
 def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:

@@ -1,5 +1,5 @@
 """Failure attribution over a whole `gsmn eval` run: each failed episode traced to the first stage the model got
-wrong (gsmn/attribution.py), and the counts.
+wrong (gsmn/attribution.py), and the counts; the control failures also by how the drone missed the goal peak.
 
     gsmn eval --system gsmn --split test --episodes 500 --json runs/eval.json --record runs/eval_rec
     .venv/bin/python scripts/attribution_counts.py runs/eval.json runs/eval_rec [--checkpoint checkpoints/gsmn]
@@ -16,9 +16,10 @@ from pathlib import Path
 
 from gsmn.attribution import (
     STAGE_TITLES,
-    STAGES,
+    Attribution,
     Heads,
     attribute_record,
+    count_stages,
     load_trace,
     reported_stages,
     trace_path,
@@ -29,24 +30,37 @@ from gsmn.model.checkpoint import load_checkpoint
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def stage_counts(results: dict, recordings: Path, checkpoint: Path | None = None) -> tuple[dict[str, int], int]:
-    """Failures per attribution stage over an evaluation's episodes, and how many failures had no recording.
+def failed_attributions(results: dict, recordings: Path, checkpoint: Path | None = None) -> list[Attribution | None]:
+    """The attribution of every failed episode of an evaluation (None where it has no recording).
 
     The checkpoint defaults to the one the evaluation names (or checkpoints/gsmn)."""
     checkpoint = checkpoint or Path(results.get("checkpoint") or ROOT / "checkpoints" / "gsmn")
     model, *_ = load_checkpoint(checkpoint)
     heads = Heads.of(model)
     config = RunConfig.from_dict(results["config"])
-    counts, missing = dict.fromkeys(STAGES, 0), 0
+    out = []
     for record in results["episodes"]:
         if record["success"]:
             continue
         path = trace_path(recordings, int(record["env_id"]))
-        if not path.is_file():
-            missing += 1
-            continue
-        counts[attribute_record(record, load_trace(path), heads, config).stage] += 1
-    return counts, missing
+        out.append(attribute_record(record, load_trace(path), heads, config) if path.is_file() else None)
+    return out
+
+
+def stage_counts(results: dict, recordings: Path, checkpoint: Path | None = None) -> tuple[dict[str, int], int]:
+    """Failures per attribution stage over an evaluation's episodes, and how many failures had no recording."""
+    found = failed_attributions(results, recordings, checkpoint)
+    return count_stages(found), sum(a is None for a in found)
+
+
+def control_misses(attributions: list[Attribution | None]) -> dict[str, int]:
+    """The control failures by how the drone missed the goal peak: stopped short, overshot, beside, never stopped."""
+    kinds = {"ahead": "stopped short", "behind": "overshot", "left": "beside", "right": "beside"}
+    out = dict.fromkeys(("stopped short", "overshot", "beside", "never stopped"), 0)
+    for a in attributions:
+        if a is not None and a.stage == "control":
+            out["never stopped" if not a.stopped else kinds.get(a.peak_bearing, "beside")] += 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,13 +70,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", type=Path, default=None)
     args = ap.parse_args(argv)
     results = json.loads(args.results.read_text())
-    counts, missing = stage_counts(results, args.recordings, args.checkpoint)
+    found = failed_attributions(results, args.recordings, args.checkpoint)
+    counts, missing = count_stages(found), sum(a is None for a in found)
     failures = sum(1 for r in results["episodes"] if not r["success"])
     stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
     print(f"{failures} failures of {len(results['episodes'])} episodes "
           f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
     for stage in reported_stages(counts):
         print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
+        if stage == "control" and counts[stage]:
+            for kind, n in control_misses(found).items():
+                print(f"    {kind:<13} {n}")
     if missing:
         print(f"  no recording    {missing}", file=sys.stderr)
     if stopped_steps:

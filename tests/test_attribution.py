@@ -16,6 +16,7 @@ import pytest
 from gsmn.attribution import (
     STAGE_TITLES,
     STAGES,
+    Attribution,
     FinalMaps,
     Heads,
     attribute,
@@ -134,6 +135,25 @@ def test_a_right_goal_map_and_a_wrong_end_is_a_control_failure():
     assert b.stage == "control" and "never said STOP" in b.reason
 
 
+def test_a_control_failure_says_which_way_the_drone_missed_the_peak():
+    """With the final heading, a control failure reads as stopped short, overshot or beside the goal peak."""
+    gx, gy = INSTRUCTION.goal
+    east, north = 0.0, np.pi / 2
+    cases = {"ahead": ((gx - 3.0, gy), east), "behind": ((gx + 3.0, gy), east),
+             "left": ((gx, gy - 3.0), east), "right": ((gx, gy + 3.0), east),
+             "behind ": ((gx, gy + 3.0), north)}  # the same place, facing north: the peak is behind
+    for want, (final, yaw) in cases.items():
+        a = attribute(maps_where(), heads(), WORLD, INSTRUCTION, final, True, False, final_yaw=yaw)
+        assert a.stage == "control" and a.peak_bearing == want.strip(), want
+        assert {"ahead": "short", "behind": "overshot", "left": "to its left",
+                "right": "to its right"}[want.strip()] in a.reason
+    assert run(maps_where(), final=(gx - 3.0, gy)).peak_bearing is None  # no heading, no direction
+    never = attribute(maps_where(), heads(), WORLD, INSTRUCTION, (gx - 3.0, gy), False, False, final_yaw=east)
+    assert "never said STOP" in never.reason and never.peak_bearing == "ahead"
+    old = {k: v for k, v in never.to_dict().items() if k != "peak_bearing"}  # saved before the field existed
+    assert Attribution.from_dict(old).peak_bearing is None
+
+
 def test_without_a_trained_goal_head_goal_and_control_are_one_stage():
     """A model trained without J_plan has an untrained goal head: its P(goal) must not decide the stage."""
     untrained = dataclasses.replace(heads(), goal_trained=False)
@@ -177,7 +197,7 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
 
     model, *_ = load_checkpoint(folder)
     a = attribute(trace.maps, Heads.of(model), WORLD, INSTRUCTION, (record.final_x, record.final_y),
-                  record.stopped, record.success)
+                  record.stopped, record.success, final_yaw=record.trajectory[-1][3])
     assert record.success is False and a.stage in STAGES
     assert a.p_named == pytest.approx(float(trace.p_named[-1]), abs=2e-3)  # float16 maps vs float32 steps
     assert (cell(a.goal_peak_x, a.goal_peak_y) == tuple(trace.goal_peak_rc[-1])) or \
