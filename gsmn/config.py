@@ -172,6 +172,8 @@ class ExpertConfig:
     heading_gain: float = _f(0.5, "normalised yaw rate per radian of heading error to the carrot")
     lateral_gain: float = _f(0.1, "normalised yaw rate per metre of lateral offset from the path")
     stop_before_end: int = _f(1, "STOP once progress reaches this many waypoints before the last one")
+    stop_radius: float = _f(1.8, "... and only within this distance of the goal (m; inf: progress alone, as the "
+                                 "original); off the path, as in DAgger, progress alone can reach it metres away")
 
     def __post_init__(self) -> None:
         _check(self.takeoff_distance >= 0, "expert.takeoff_distance must be >= 0")
@@ -182,6 +184,7 @@ class ExpertConfig:
         _check(self.look_ahead >= 1 and self.progress_window >= 1,
                "expert.look_ahead and expert.progress_window must be >= 1")
         _check(self.ramp_waypoints >= 0, "expert.ramp_waypoints must be >= 0")
+        _check(self.stop_radius > 0, f"expert.stop_radius must be positive, got {self.stop_radius}")
         _check(0 <= self.min_speed <= 1, f"expert.min_speed is normalised, must be in [0, 1], got {self.min_speed}")
         _check(self.heading_gain >= 0 and self.lateral_gain >= 0, "expert gains must be >= 0")
         _check(self.stop_before_end >= 0, "expert.stop_before_end must be >= 0")

@@ -369,6 +369,48 @@ def test_expert_stops_at_the_second_to_last_waypoint():
     assert Expert(path, ExpertConfig(stop_before_end=0)).act(path[-2], 0.0).stop is False
 
 
+def test_off_the_path_the_expert_stops_only_near_the_goal():
+    """DAgger asks the expert at the learner's states. A learner flying straight past the fir tree, 2 m to the left
+    of the back-side goal, while the path curls around the tree's rim: progress alone (the original's rule, an
+    infinite stop radius) reaches the stop waypoint 3-4 m from the goal, in the left quadrant. With the stop
+    radius the expert says fly on, and flying its own commands from there it stops near the goal, on the back."""
+    world = make_world([landmark("fir_tree", 12.0, 12.0), landmark("igloo", 21.0, 21.0),
+                        landmark("rock_1", 24.0, 8.0)], corner=0)
+    ins = make_instruction(world, 0, "back")
+    tree, path, goal = world.landmarks[0], demonstration_path(world, ins.goal), np.array(ins.goal)
+    start = np.array(world.start_position)
+    heading = (goal - start) / np.linalg.norm(goal - start)
+    past = goal + 2.0 * np.array([-heading[1], heading[0]])  # 2 m to the left of the goal
+    yaw = math.atan2(heading[1], heading[0])
+
+    def first_stop(expert: Expert):
+        for t in np.linspace(0.0, 1.3, 400):
+            p = start + t * (past - start)
+            if expert.act(p, yaw).stop:
+                return p
+        return None
+
+    old = first_stop(Expert(path, ExpertConfig(stop_radius=math.inf)))
+    assert old is not None and np.linalg.norm(old - goal) > 3.0
+    assert side_of(tree.position, world.start_position, old) == "left"  # a wrong STOP label
+    expert = Expert(path)
+    assert first_stop(expert) is None  # the same states: fly on
+
+    expert.reset()
+    p, heading_angle, drone = start.copy(), yaw, DroneConfig()
+    for t in np.linspace(0.0, 1.0, 200):  # the learner's states up to where the old rule said STOP
+        p = start + t * (old - start)
+        expert.act(p, heading_angle)
+    for _ in range(60):  # then the expert's own commands, flown as a unicycle at 5 Hz
+        a = expert.act(p, heading_angle)
+        if a.stop:
+            break
+        heading_angle += a.yaw_rate / drone.control_hz
+        p = p + a.forward_velocity / drone.control_hz * np.array([math.cos(heading_angle), math.sin(heading_angle)])
+    assert a.stop and np.linalg.norm(p - goal) <= ExpertConfig().stop_radius
+    assert success(p, tree.position, world.start_position, "back")
+
+
 def test_expert_progress_is_monotone_and_windowed():
     # A U-turn: out along y = 0, back along y = 2. Near the start the return leg is the nearest.
     out = _straight_path(24.0)

@@ -10,7 +10,17 @@ At each step the drone is projected onto the path (progress), the carrot is the 
 with the heading error to the carrot in radians and the lateral error the signed distance (m) from the
 path, positive to the left of it (the original's units for this term are not known; we take metres,
 so 1 m off the path adds 0.24 rad/s). Physical commands are the normalised ones times the drone's limits
-(1.6 m/s, 2.44 rad/s). STOP once progress reaches the second-to-last waypoint.
+(1.6 m/s, 2.44 rad/s). STOP once progress reaches the second-to-last waypoint and the drone is within
+`stop_radius` (1.8 m) of the goal.
+
+Departure, the stop radius: the original stops on progress alone. On the path the two agree (progress at the
+second-to-last waypoint is at most a spacing, 1.2 m, from the goal). Off it, as in DAgger's learner states,
+progress is the projection onto the path, and a learner flying past a landmark's side while the path curls
+around its rim to the back reaches the stop waypoint's projection 2.5-5 m from the goal, often in the wrong
+quadrant: in the test rollouts of the GSMN shipped on 2026-11-25, 65 of 236 first expert STOPs along the
+learner's path were outside the success region (docs/training.md, "The expert's STOP off the path"). Those
+labels taught the learner to stop short of and beside back-side goals. With the radius, the expert keeps
+flying to the goal (the carrot is the goal near the end) until it is close.
 
 Progress is monotone non-decreasing and searched only `progress_window` waypoints ahead of its last value,
 so the expert never jumps back (or far forward) across a loop of the path, and it answers from anywhere,
@@ -68,7 +78,7 @@ class Expert:
         """The expert's action from the drone's position (x, y) and heading; advances the progress."""
         c, p = self.config, np.asarray(position_xy, dtype=float)[:2]
         self.progress, lateral_error = self._project(p)
-        if self.progress >= self.stop_progress:
+        if self.progress >= self.stop_progress and math.dist(p, self.path[-1]) <= c.stop_radius:
             return ExpertAction(0.0, 0.0, True, 0.0, 0.0, self.progress)
         carrot = self.point_at(self.progress + c.look_ahead)
         to_carrot = carrot - p
