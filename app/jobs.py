@@ -650,7 +650,10 @@ def run_progress(folder: Path, row: Run) -> tuple[dict, list[dict]]:
         if p.get("loss") is not None:
             text += f", loss {p['loss']:.3f}"
     elif phase in ("validate", "done"):
-        within = 1.0 if phase == "done" else 0.95
+        # The iteration's log line is written before the next progress report: once it is there, the "validate"
+        # still in progress.json belongs to a finished iteration, already counted in `done`.
+        stale = phase == "validate" and int(p.get("iteration", done + 1)) <= done
+        within = 1.0 if phase == "done" else 0.0 if stale else 0.95
         text = f"iteration {p.get('iteration', done)} of {iterations}: {phase}"
     else:
         state = _read_json(run.state_dir / "state.json") or {}

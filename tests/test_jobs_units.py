@@ -133,6 +133,15 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
     (run / "progress.json").write_text(json.dumps({"phase": "train", "batch": 3, "batches": 4, "loss": 0.9}))
     p, _ = run_progress(tmp_path, row)
     assert p["fraction"] == pytest.approx((1 + 0.5 + 0.5 * 0.75) / 4, abs=1e-4) and "batch 3/4, loss 0.900" in p["text"]
+    (run / "progress.json").write_text(json.dumps({"phase": "validate", "iteration": 2}))
+    p, _ = run_progress(tmp_path, row)
+    assert p["fraction"] == pytest.approx((1 + 0.95) / 4, abs=1e-4)
+    # Iteration 2's log line is written before the next progress report: the fraction must not run ahead of it
+    # (it read 2.95 / 4 here, then fell back to 2 / 4 once iteration 3's rollouts began).
+    with (run / "log.jsonl").open("a") as f:
+        f.write(json.dumps({"iteration": 2, "train": {"loss": 1.2}}) + "\n")
+    p, _ = run_progress(tmp_path, row)
+    assert p["fraction"] == pytest.approx(2 / 4, abs=1e-4)
 
 
 def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
