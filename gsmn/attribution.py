@@ -167,15 +167,11 @@ def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:
 
 def bearing(from_xy: tuple[float, float], yaw: float, to_xy: tuple[float, float]) -> str:
     """Which of BEARINGS a point lies in as seen from a pose (x east, y north, yaw counter-clockwise from east):
-    90-degree sectors centred on the heading ("ahead"), its opposite, and the two sides."""
-    dx, dy = to_xy[0] - from_xy[0], to_xy[1] - from_xy[1]
-    along = dx * math.cos(yaw) + dy * math.sin(yaw)
-    across = -dx * math.sin(yaw) + dy * math.cos(yaw)  # > 0: counter-clockwise of the heading, on the left
-    if along >= abs(across):
-        return "ahead"
-    if -along >= abs(across):
-        return "behind"
-    return "left" if across > 0 else "right"
+    90-degree sectors centred on the heading ("ahead"), its opposite, and the two sides. The metric's quadrants
+    (`side_of`) with the pose as the landmark and a start one metre behind it: "back" is ahead."""
+    behind = (from_xy[0] - math.cos(yaw), from_xy[1] - math.sin(yaw))
+    side = side_of(from_xy, behind, to_xy)
+    return {"back": "ahead", "front": "behind"}.get(side, side)
 
 
 _MISSED = {"ahead": "stopped {d:.1f} m short of it (the peak ahead)", "behind": "overshot it by {d:.1f} m (the peak "
@@ -276,10 +272,12 @@ def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config
                               noun_phrase=record["noun_phrase"], side=record["side"],
                               goal_x=float(record["goal_x"]), goal_y=float(record["goal_y"]),
                               ambiguous=bool(record["ambiguous"]))
-    trajectory = record.get("trajectory") or []
-    final_yaw = float(trajectory[-1][3]) if trajectory and len(trajectory[-1]) > 3 else None
+    final_yaw = record.get("final_yaw")  # progress lines (the dashboard's) carry it instead of the trajectory
+    if final_yaw is None and record.get("trajectory"):
+        final_yaw = record["trajectory"][-1][3]
     return attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
-                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius, final_yaw)
+                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius,
+                     None if final_yaw is None else float(final_yaw))
 
 
 def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:

@@ -230,8 +230,9 @@ def write_json(path: Path, results: dict) -> None:
 
 
 class ProgressLog:
-    """One JSON line per finished episode (the record without its trajectory, and how many are done of how
-    many), flushed at once: what a monitor such as the dashboard reads while an evaluation runs."""
+    """One JSON line per finished episode (the record without its trajectory but with its final heading, and how
+    many are done of how many), flushed at once: what a monitor such as the dashboard reads while an evaluation
+    runs."""
 
     def __init__(self, path: Path, total: int):
         self.path, self.total, self.done = Path(path), total, 0
@@ -241,5 +242,6 @@ class ProgressLog:
     def write(self, record: EpisodeRecord) -> None:
         self.done += 1
         line = {k: v for k, v in record.to_dict().items() if k not in ("trajectory", "actions")}
+        line["final_yaw"] = record.trajectory[-1][3]  # for failure attribution (which way a control failure missed)
         with self.path.open("a") as f:
             f.write(json.dumps({"done": self.done, "total": self.total, **line}) + "\n")

@@ -49,17 +49,23 @@ def failed_attributions(results: dict, recordings: Path, checkpoint: Path | None
 
 def stage_counts(results: dict, recordings: Path, checkpoint: Path | None = None) -> tuple[dict[str, int], int]:
     """Failures per attribution stage over an evaluation's episodes, and how many failures had no recording."""
-    found = failed_attributions(results, recordings, checkpoint)
+    return _tally(failed_attributions(results, recordings, checkpoint))
+
+
+def _tally(found: list[Attribution | None]) -> tuple[dict[str, int], int]:
     return count_stages(found), sum(a is None for a in found)
 
 
 def control_misses(attributions: list[Attribution | None]) -> dict[str, int]:
-    """The control failures by how the drone missed the goal peak: stopped short, overshot, beside, never stopped."""
-    kinds = {"ahead": "stopped short", "behind": "overshot", "left": "beside", "right": "beside"}
+    """The control failures by how the drone missed the goal peak: stopped short, overshot, beside, never stopped
+    ("direction unknown" only for episodes recorded without their final heading)."""
+    kinds = {"ahead": "stopped short", "behind": "overshot", "left": "beside", "right": "beside",
+             None: "direction unknown"}
     out = dict.fromkeys(("stopped short", "overshot", "beside", "never stopped"), 0)
     for a in attributions:
         if a is not None and a.stage == "control":
-            out["never stopped" if not a.stopped else kinds.get(a.peak_bearing, "beside")] += 1
+            kind = "never stopped" if not a.stopped else kinds[a.peak_bearing]
+            out[kind] = out.get(kind, 0) + 1
     return out
 
 
@@ -71,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     results = json.loads(args.results.read_text())
     found = failed_attributions(results, args.recordings, args.checkpoint)
-    counts, missing = count_stages(found), sum(a is None for a in found)
+    counts, missing = _tally(found)
     failures = sum(1 for r in results["episodes"] if not r["success"])
     stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
     print(f"{failures} failures of {len(results['episodes'])} episodes "

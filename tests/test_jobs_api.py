@@ -20,7 +20,7 @@ import httpx
 import pytest
 
 from app.fixtures import make_untrained_checkpoint
-from gsmn.attribution import STAGES
+from gsmn.attribution import BEARINGS, STAGES
 
 HORIZON = 40
 ENV_IDS = [70, 71, 72]
@@ -137,6 +137,7 @@ def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluati
     assert failures, "the untrained model fails"
     for e in failures:
         assert e["stage"] in STAGES and e["attribution"]["stage"] == e["stage"] and e["attribution"]["reason"]
+        assert e["attribution"]["peak_bearing"] in BEARINGS  # the final heading reached the dashboard's record
     assert sum(evaluation["stages"].values()) == len(failures)
     for key in ("instruction", "landmark", "side", "ambiguous", "landmark_success", "goal_distance"):
         assert key in episodes[0]
