@@ -29,6 +29,7 @@ from gsmn.model import (
     load_policy,
     save_checkpoint,
 )
+from gsmn.model.checkpoint import average_checkpoints
 from gsmn.model.labels import make_labels
 from gsmn.model.losses import TERMS
 from gsmn.model.noise import perturb_poses
@@ -430,6 +431,26 @@ def test_a_checkpoint_from_before_filter_activation_loads_with_the_sigmoid(tmp_p
     with torch.inference_mode():
         torch.testing.assert_close(forward_batch(loaded, batch).goal_map_w, forward_batch(model, batch).goal_map_w,
                                    rtol=0, atol=0)
+
+
+def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
+    a = save_checkpoint(tmp_path / "a", seeded_model("gsmn", seed=0), TINY, VOCABULARY)
+    b = save_checkpoint(tmp_path / "b", seeded_model("gsmn", seed=1), TINY, VOCABULARY)
+    mean = average_checkpoints([a, b], tmp_path / "mean")
+    (wa, *_), (wb, *_), (wm, _, vocabulary, meta) = (load_checkpoint(f) for f in (a, b, mean))
+    sa, sb, sm = wa.state_dict(), wb.state_dict(), wm.state_dict()
+    assert any(not torch.equal(sa[k], sb[k]) for k in sa)
+    for k in sm:
+        torch.testing.assert_close(sm[k], (sa[k] + sb[k]) / 2, rtol=0, atol=1e-7)
+    assert vocabulary == VOCABULARY and meta["averaged_from"] == [str(a), str(b)]
+    assert not (mean / "optimizer.pt").exists()
+    # Only one model's checkpoints average: another kind, or another model config, is refused by name.
+    other = save_checkpoint(tmp_path / "fpv", seeded_model("gs-fpv"), TINY, VOCABULARY)
+    sigmoid = save_checkpoint(tmp_path / "sigmoid", seeded_model("gsmn", SIGMOID), SIGMOID, VOCABULARY)
+    for bad in (other, sigmoid):
+        with pytest.raises(CheckpointError, match=f"{bad}.*differs"):
+            average_checkpoints([a, bad], tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
 
 
 @pytest.fixture

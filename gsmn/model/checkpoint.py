@@ -91,6 +91,27 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
     return folder
 
 
+def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
+    """Write the mean of several checkpoints' weights (of one kind, vocabulary and model config, e.g. several
+    DAggerFM iterations of one run) as a new checkpoint `out`: checkpoint averaging (Polyak; Izmailov et al. 2018,
+    "Averaging weights leads to wider optima"). Floating-point tensors are averaged, others taken from the last
+    (GSMN has none: GroupNorm keeps no running statistics). The config and vocabulary are the last checkpoint's;
+    there is no optimizer state (a mean of Adam moments means nothing); meta.json names the sources."""
+    if not folders:
+        raise ValueError("average_checkpoints: no checkpoints given")
+    loaded = [load_checkpoint(f) for f in folders]
+    model, config, vocabulary, meta = loaded[-1]
+    for folder, (_, c, v, m) in zip(folders, loaded):
+        if m["kind"] != loaded[0][3]["kind"] or v != loaded[0][2] or c.model != loaded[0][1].model:
+            raise CheckpointError(f"checkpoint {folder}: its kind, vocabulary or model config differs from "
+                                  f"{folders[0]}'s; only checkpoints of one model can be averaged")
+    states = [m.state_dict() for m, *_ in loaded]
+    model.load_state_dict({name: torch.stack([s[name].float() for s in states]).mean(0).to(t.dtype)
+                           if t.is_floating_point() else t for name, t in states[-1].items()})
+    return save_checkpoint(out, model, config, vocabulary,
+                           meta={"averaged_from": [str(f) for f in folders], "metrics": meta.get("metrics", {})})
+
+
 def _read_json(folder: Path, name: str) -> Any:
     path = folder / name
     if not path.is_file():
