@@ -442,7 +442,7 @@ def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
     assert any(not torch.equal(sa[k], sb[k]) for k in sa)
     for k in sm:
         torch.testing.assert_close(sm[k], (sa[k] + sb[k]) / 2, rtol=0, atol=1e-7)
-    assert vocabulary == VOCABULARY and meta["averaged_from"] == [str(a), str(b)]
+    assert vocabulary == VOCABULARY and meta["averaged_from"] == [str(a), str(b)] and meta["metrics"] == {}
     assert not (mean / "optimizer.pt").exists()
     # Only one model's checkpoints average: another kind, or another model config, is refused by name.
     other = save_checkpoint(tmp_path / "fpv", seeded_model("gs-fpv"), TINY, VOCABULARY)

@@ -96,7 +96,8 @@ def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
     DAggerFM iterations of one run) as a new checkpoint `out`: checkpoint averaging (Polyak; Izmailov et al. 2018,
     "Averaging weights leads to wider optima"). Floating-point tensors are averaged, others taken from the last
     (GSMN has none: GroupNorm keeps no running statistics). The config and vocabulary are the last checkpoint's;
-    there is no optimizer state (a mean of Adam moments means nothing); meta.json names the sources."""
+    there is no optimizer state (a mean of Adam moments means nothing); meta.json names the sources and has no
+    metrics (the sources' dev metrics are not the mean's)."""
     if not folders:
         raise ValueError("average_checkpoints: no checkpoints given")
     loaded = [load_checkpoint(f) for f in folders]
@@ -109,7 +110,7 @@ def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
     model.load_state_dict({name: torch.stack([s[name].float() for s in states]).mean(0).to(t.dtype)
                            if t.is_floating_point() else t for name, t in states[-1].items()})
     return save_checkpoint(out, model, config, vocabulary,
-                           meta={"averaged_from": [str(f) for f in folders], "metrics": meta.get("metrics", {})})
+                           meta={"averaged_from": [str(f) for f in folders]})  # no metrics: nobody measured it yet
 
 
 def _read_json(folder: Path, name: str) -> Any:
