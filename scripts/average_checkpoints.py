@@ -17,7 +17,8 @@ def main() -> None:
     parser.add_argument("checkpoints", nargs="+", help="checkpoint folders of one model")
     parser.add_argument("--out", required=True, help="the averaged checkpoint's folder")
     args = parser.parse_args()
-    print(f"{average_checkpoints(args.checkpoints, args.out)}: the mean of {len(args.checkpoints)} checkpoints' weights")
+    out = average_checkpoints(args.checkpoints, args.out)
+    print(f"{out}: the mean of {len(args.checkpoints)} checkpoints' weights")
 
 
 if __name__ == "__main__":

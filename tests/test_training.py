@@ -115,6 +115,12 @@ def test_a_run_from_a_checkpoint_can_go_on_with_its_optimizer_state(stores, tmp_
     (start / "optimizer.pt").unlink()
     with pytest.raises(CheckpointError, match="holds no optimizer state"):
         train_supervised(tmp_path / "refused", "gsmn", slower, train, init=start, init_optimizer=True)
+    # A run that already started resumes from its own state, Adam included, whatever became of `init` since.
+    longer = with_overrides(slower, {"train.epochs": "2"})
+    end = train_supervised(tmp_path / "continued", "gsmn", longer, train, init=start, init_optimizer=True,
+                           log=lambda s: None)
+    after = torch.load(end / "optimizer.pt", weights_only=True)
+    assert {float(v["step"]) for v in after["state"].values()} == {6.0}
 
 
 def _cli(run: Path, data: Path) -> list[str]:

@@ -101,8 +101,8 @@ def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
     if not folders:
         raise ValueError("average_checkpoints: no checkpoints given")
     loaded = [load_checkpoint(f) for f in folders]
-    model, config, vocabulary, meta = loaded[-1]
-    for folder, (_, c, v, m) in zip(folders, loaded):
+    model, config, vocabulary, _ = loaded[-1]
+    for folder, (_, c, v, m) in zip(folders, loaded, strict=True):
         if m["kind"] != loaded[0][3]["kind"] or v != loaded[0][2] or c.model != loaded[0][1].model:
             raise CheckpointError(f"checkpoint {folder}: its kind, vocabulary or model config differs from "
                                   f"{folders[0]}'s; only checkpoints of one model can be averaged")

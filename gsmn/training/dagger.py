@@ -87,8 +87,10 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     run = RunFolder(run_dir)
     run.start(config)
     dataset = EpisodeStore(run.root / "dataset")
-    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init, init_optimizer)
-    if run.has_state():
+    resuming = run.has_state()  # then weights and Adam come from the run's state, not from `init`
+    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init,
+                                                            init_optimizer and not resuming)
+    if resuming:
         state = run.load_state(model, optimizer)
     else:
         state = TrainState(epoch=0, extra={"phase": "start"})

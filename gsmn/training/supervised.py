@@ -186,7 +186,9 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
         config = with_model_of(config, init)
     run = RunFolder(run_dir)
     run.start(config)
-    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init, init_optimizer)
+    # A run resuming from its own state takes weights and Adam from there: `init`'s optimizer state is not needed
+    # (the checkpoint may have been replaced since, e.g. by one without it).
+    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init, init_optimizer and not run.has_state())
     state = run.load_state(model, optimizer) if run.has_state() else TrainState()
     run.trim_log(state.epoch)
     keys = train_store.keys()
