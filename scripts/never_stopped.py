@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsmn.attribution import cell_centre
+from gsmn.attribution import cell_centre, load_trace, trace_path
 from gsmn.config import RunConfig
 
 
@@ -32,14 +32,14 @@ def main() -> None:
     for e in evaluation["episodes"]:
         if e["stopped"]:
             continue
-        record = np.load(Path(args.records) / f"env_{e['env_id']:06d}.npz")
+        trace = load_trace(trace_path(args.records, e["env_id"]))
         goal = np.array([e["goal_x"], e["goal_y"]])
-        steps = len(record["goal_peak_rc"])
+        steps = len(trace.goal_peak_rc)
         distance = np.linalg.norm(np.array(e["trajectory"])[:steps, :2] - goal, axis=1)
-        peaks = np.array([cell_centre(int(r), int(c), field, n) for r, c in record["goal_peak_rc"]])
+        peaks = np.array([cell_centre(int(r), int(c), field, n) for r, c in trace.goal_peak_rc])
         j = int(np.argmin(distance))
         near = distance < args.radius
-        p_near = float(record["stop_probability"][:steps][near].max()) if near.any() else float("nan")
+        p_near = float(trace.stop_probability[:steps][near].max()) if near.any() else float("nan")
         rows.append((e["env_id"], e["side"], distance[j], float(np.linalg.norm(peaks[j] - goal)), p_near))
         print(f"env {e['env_id']:5d} {e['side']:5s}  closest {distance[j]:5.2f} m  goal peak then "
               f"{rows[-1][3]:5.2f} m from the goal  max P(stop) within {args.radius} m: {p_near:.3f}")

@@ -102,8 +102,9 @@ def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
         raise ValueError("average_checkpoints: no checkpoints given")
     loaded = [load_checkpoint(f) for f in folders]
     model, config, vocabulary, _ = loaded[-1]
+    _, first_config, first_vocabulary, first_meta = loaded[0]
     for folder, (_, c, v, m) in zip(folders, loaded, strict=True):
-        if m["kind"] != loaded[0][3]["kind"] or v != loaded[0][2] or c.model != loaded[0][1].model:
+        if (m["kind"], v, c.model) != (first_meta["kind"], first_vocabulary, first_config.model):
             raise CheckpointError(f"checkpoint {folder}: its kind, vocabulary or model config differs from "
                                   f"{folders[0]}'s; only checkpoints of one model can be averaged")
     states = [m.state_dict() for m, *_ in loaded]

@@ -33,7 +33,7 @@ from gsmn.task.rollout import task_for_env
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
-from gsmn.training.supervised import Logger, Progress, finish_epoch, make_model_and_optimizer, run_epoch
+from gsmn.training.supervised import Logger, Progress, finish_epoch, run_epoch, start_or_resume
 from gsmn.world.env import Env
 
 
@@ -87,13 +87,8 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     run = RunFolder(run_dir)
     run.start(config)
     dataset = EpisodeStore(run.root / "dataset")
-    resuming = run.has_state()  # then weights and Adam come from the run's state, not from `init`
-    model, vocabulary, optimizer = make_model_and_optimizer(_kind_of(init), config, init,
-                                                            init_optimizer and not resuming)
-    if resuming:
-        state = run.load_state(model, optimizer)
-    else:
-        state = TrainState(epoch=0, extra={"phase": "start"})
+    model, vocabulary, optimizer, state = start_or_resume(run, _kind_of(init), config, init, init_optimizer)
+    state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
     run.trim_log(state.epoch)
     expert_keys = expert_store.keys()
     if env_ids is None:

@@ -157,6 +157,16 @@ def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vo
     return True
 
 
+def start_or_resume(run: RunFolder, kind: str, config: RunConfig, init: Path | None, init_optimizer: bool
+                    ) -> tuple[Model, Vocabulary, torch.optim.Optimizer, TrainState | None]:
+    """The model, vocabulary and Adam of a run, and its saved state when it has one (None for a new run). A run
+    resuming from its own state takes weights and Adam from there, so `init`'s optimizer state is read only for a
+    new run (the checkpoint may have been replaced since, e.g. by one without it)."""
+    resuming = run.has_state()
+    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init, init_optimizer and not resuming)
+    return model, vocabulary, optimizer, run.load_state(model, optimizer) if resuming else None
+
+
 def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
                  config: RunConfig, state: TrainState, record: dict, dev_store: EpisodeStore | None,
                  log: Logger) -> None:
@@ -186,10 +196,8 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
         config = with_model_of(config, init)
     run = RunFolder(run_dir)
     run.start(config)
-    # A run resuming from its own state takes weights and Adam from there: `init`'s optimizer state is not needed
-    # (the checkpoint may have been replaced since, e.g. by one without it).
-    model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init, init_optimizer and not run.has_state())
-    state = run.load_state(model, optimizer) if run.has_state() else TrainState()
+    model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
+    state = TrainState() if state is None else state
     run.trim_log(state.epoch)
     keys = train_store.keys()
     if not keys:
