@@ -453,6 +453,35 @@ def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path):
+    """scripts/keep_iterations.py (run beside a training run) keeps RUN_itN per iteration, without the Adam state,
+    and takes no copy of a checkpoint it already has or of one without an iteration."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "keep_iterations.py"
+    spec = importlib.util.spec_from_file_location("keep_iterations", path)
+    keep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(keep)
+    run = tmp_path / "run"
+    assert keep.keep_once(run) is None  # nothing written yet
+    model = seeded_model("gsmn", seed=0)
+    optimizer = torch.optim.Adam(model.parameters())
+    save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {}})
+    assert keep.keep_once(run) is None  # a checkpoint that says no iteration
+    for n, seed in ((1, 0), (2, 1)):
+        model = seeded_model("gsmn", seed=seed)
+        save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {"iteration": n}},
+                        optimizer_state=optimizer.state_dict())
+        assert keep.keep_once(run) == tmp_path / f"run_it{n}"
+        assert keep.keep_once(run) is None
+        kept, *_ = load_checkpoint(tmp_path / f"run_it{n}")
+        assert all(torch.equal(a, b) for a, b in zip(kept.state_dict().values(), model.state_dict().values(),
+                                                     strict=True))
+        assert not (tmp_path / f"run_it{n}" / "optimizer.pt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run_it1", "run_it2"]
+
+
 @pytest.fixture
 def checkpoint(tmp_path):
     return save_checkpoint(tmp_path / "ckpt", seeded_model("gsmn"), TINY, VOCABULARY)
