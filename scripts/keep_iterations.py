@@ -3,8 +3,9 @@
     python scripts/keep_iterations.py runs/gsmn_dagger_avg &     # beside `gsmn train dagger --run runs/gsmn_dagger_avg`
 
 Polls RUN/checkpoint/meta.json and copies the checkpoint (weights, config, vocabulary, meta; not the Adam state)
-to RUN_itN when its iteration (or epoch) N has no copy yet. A checkpoint is replaced by a rename, so a copy
-taken while it is being replaced is checked against its own meta.json and taken again on the next poll. Runs
+to RUN_itN when its iteration (or epoch) N has no copy yet. A checkpoint is replaced by a rename, so a copy is
+kept only if the run's meta.json was the same before and after it (and the same as the copy's); one taken while
+the checkpoint was being replaced is dropped and taken again on the next poll. Runs
 until killed; `scripts/average_checkpoints.py` averages the copies (docs/training.md, "Averaging DAggerFM
 iterations").
 """
@@ -17,32 +18,35 @@ import shutil
 import time
 from pathlib import Path
 
+from gsmn.model.checkpoint import OPTIMIZER_FILE
 
-def iteration_of(checkpoint: Path) -> int | None:
-    """The DAggerFM iteration (or supervised epoch) a run's checkpoint was written after, or None."""
-    metrics = json.loads((checkpoint / "meta.json").read_text()).get("metrics", {})
+
+def iteration_of(meta_text: str) -> int | None:
+    """The DAggerFM iteration (or supervised epoch) a checkpoint's meta.json says it was written after, or None."""
+    metrics = json.loads(meta_text).get("metrics", {})
     n = metrics.get("iteration", metrics.get("epoch"))
     return None if n is None else int(n)
 
 
 def keep_once(run: Path) -> Path | None:
     """Copy the run's checkpoint to RUN_itN if it is new; returns the copy, or None."""
+    meta = run / "checkpoint" / "meta.json"
     try:
-        n = iteration_of(run / "checkpoint")
+        before = meta.read_text()
+        n = iteration_of(before)
     except (OSError, json.JSONDecodeError):  # not written yet, or being replaced
         return None
-    if n is None:
-        return None
     dst = run.parent / f"{run.name}_it{n}"
-    if dst.exists():
+    if n is None or dst.exists():
         return None
     tmp = run.parent / f".{dst.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        shutil.copytree(run / "checkpoint", tmp, ignore=shutil.ignore_patterns("optimizer.pt"))
-        if iteration_of(tmp) != n:  # replaced while copying: try again next time
-            raise OSError("checkpoint replaced while copying")
-    except (OSError, json.JSONDecodeError):
+        shutil.copytree(run / "checkpoint", tmp, ignore=shutil.ignore_patterns(OPTIMIZER_FILE))
+        unchanged = meta.read_text() == before == (tmp / "meta.json").read_text()
+    except OSError:
+        unchanged = False
+    if not unchanged:  # replaced while copying: try again next time
         shutil.rmtree(tmp, ignore_errors=True)
         return None
     tmp.rename(dst)

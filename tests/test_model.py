@@ -453,7 +453,7 @@ def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
-def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path):
+def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path, monkeypatch):
     """scripts/keep_iterations.py (run beside a training run) keeps RUN_itN per iteration, without the Adam state,
     and takes no copy of a checkpoint it already has or of one without an iteration."""
     import importlib.util
@@ -480,6 +480,21 @@ def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path):
                                                      strict=True))
         assert not (tmp_path / f"run_it{n}" / "optimizer.pt").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run_it1", "run_it2"]
+    # The run replaces its checkpoint (iteration 4) while iteration 3's is being copied: no copy is kept then,
+    # and the next poll keeps iteration 4's.
+    save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {"iteration": 3}})
+    copytree = keep.shutil.copytree
+
+    def copy_during_replacement(src, dst, **kwargs):
+        out = copytree(src, dst, **kwargs)
+        save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {"iteration": 4}})
+        return out
+
+    monkeypatch.setattr(keep.shutil, "copytree", copy_during_replacement)
+    assert keep.keep_once(run) is None
+    monkeypatch.undo()
+    assert keep.keep_once(run) == tmp_path / "run_it4"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run_it1", "run_it2", "run_it4"]
 
 
 @pytest.fixture
