@@ -1,5 +1,6 @@
 """Failure attribution over a whole `gsmn eval` run: each failed episode traced to the first stage the model got
-wrong (gsmn/attribution.py), and the counts; the control failures also by how the drone missed the goal peak.
+wrong (gsmn/attribution.py), and the counts; the control failures also by how the drone missed the goal peak;
+how many episodes stopped by itself and how many ended outside the field.
 
     gsmn eval --system gsmn --split test --episodes 500 --json runs/eval.json --record runs/eval_rec
     .venv/bin/python scripts/attribution_counts.py runs/eval.json runs/eval_rec [--checkpoint checkpoints/gsmn]
@@ -69,6 +70,12 @@ def control_misses(attributions: list[Attribution | None]) -> dict[str, int]:
     return out
 
 
+def ended_outside(results: dict) -> int:
+    """How many of an evaluation's episodes ended with the drone outside the field (world.field_size square)."""
+    size = RunConfig.from_dict(results["config"]).world.field_size
+    return sum(not (0 <= r["final_x"] <= size and 0 <= r["final_y"] <= size) for r in results["episodes"])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, help="gsmn eval --json output")
@@ -92,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     if stopped_steps:
         print(f"stopped by itself in {len(stopped_steps)} episodes, after {sum(stopped_steps) / len(stopped_steps):.0f}"
               " steps on average")
+    print(f"ended outside the field in {ended_outside(results)} episodes")
     return 0
 
 

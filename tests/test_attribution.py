@@ -217,6 +217,8 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
                             text=True)
     assert counts.returncode == 0, counts.stderr
     assert counts.stdout.startswith("1 failures of 1 episodes") and f"{STAGE_TITLES[a.stage]:<15} 1" in counts.stdout
+    inside = all(0 <= v <= config.world.field_size for v in (record.final_x, record.final_y))
+    assert f"ended outside the field in {0 if inside else 1} episodes" in counts.stdout
 
     save_trace(tmp_path / "copy.npz", trace)
     again = load_trace(tmp_path / "copy.npz")
