@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# Run `gsmn eval` on a lent GPU machine (the workplace's `device` tool; 16 cores, no registries reachable).
+#
+#   bash scripts/device_eval.sh NAME EVAL-ARGS...      # e.g. NAME=shipped --system gsmn --checkpoint checkpoints/gsmn
+#                                                      #      --split test --episodes 500 --workers 16
+#
+# The machine has Python 3.12 with torch and numpy but not MuJoCo or trimesh, and no libEGL: carry `.whl`
+# (mujoco, mujoco-core, mujoco-studio, glfw, PyOpenGL and trimesh wheels for cp312, as pinned here) and `.gl`
+# (the libglvnd/libEGL .deb files), both ignored through .git/info/exclude. Made here once with:
+#   printf '/.whl/\n/.gl/\n' >> .git/info/exclude
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .whl \
+#       mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw==2.11.0 PyOpenGL==3.1.10 trimesh==5.2.0
+#   mkdir -p .gl /tmp/amd64/partial; o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+#   apt-get $o update; (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+# and run there with the tool's `run` (carry [".whl", ".gl"]). Each evaluation writes NAME.json (the `--json`
+# file), NAME.progress.jsonl (one line per finished episode, so a run stopped at its time limit still returns what
+# it did) and NAME.log into /tmp/device_eval, and after each one the whole folder is packed into
+# $OUT/device_eval.tgz (the tool returns at most 8 files). `--record-failures` among the EVAL-ARGS records every
+# episode's trace (`--record`) into NAME_rec and then keeps only the failures' traces, which is all that
+# scripts/attribution_counts.py and scripts/compare_evals.py read (500 traces are 36 MB). Several
+# NAME EVAL-ARGS groups may follow one another, separated by `--next`; they run one after the other. Setup is
+# skipped when the same machine runs the script again.
+set -uo pipefail
+OUT=${OUT:-/tmp/out}
+W=/tmp/device_eval
+mkdir -p "$OUT" "$W"
+if [ ! -d /tmp/site/mujoco ]; then
+    for f in .gl/*.deb; do dpkg -x "$f" /; done
+    ldconfig
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        || exit 1
+fi
+export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
+vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+[ -f "$vendor" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
+{ date -u; nvidia-smi -L; lscpu | grep 'Model name'; nproc
+  python3 -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__, 'trimesh', trimesh.__version__)"
+} 2>&1 | tee -a "$W/machine.txt"
+
+run_one() {
+    local name=$1; shift
+    local args=() record=""
+    for a in "$@"; do
+        if [ "$a" = "--record-failures" ]; then record="$W/${name}_rec"; args+=(--record "$record"); else args+=("$a"); fi
+    done
+    echo "== $name: gsmn eval ${args[*]}"
+    local t0=$SECONDS
+    python3 -m gsmn.cli eval "${args[@]}" --json "$W/$name.json" --progress "$W/$name.progress.jsonl" 2>&1 \
+        | tr '\r' '\n' | grep -v 'episode/s\]$\|s/episode\]$' | tee "$W/$name.log"
+    echo "== $name: $((SECONDS - t0)) s" | tee -a "$W/$name.log"
+    if [ -n "$record" ] && [ -f "$W/$name.json" ]; then  # keep the failures' traces only
+        python3 - "$W/$name.json" "$record" <<'PY'
+import json, sys
+from pathlib import Path
+from gsmn.attribution import trace_path
+for e in json.load(open(sys.argv[1]))["episodes"]:
+    if e["success"]:
+        trace_path(sys.argv[2], int(e["env_id"])).unlink(missing_ok=True)
+PY
+    fi
+    tar czf "$OUT/device_eval.tgz.tmp" -C "$W" . && mv "$OUT/device_eval.tgz.tmp" "$OUT/device_eval.tgz"
+}
+
+args=()
+for a in "$@"; do
+    if [ "$a" = "--next" ]; then run_one "${args[@]}"; args=(); else args+=("$a"); fi
+done
+[ ${#args[@]} -gt 0 ] && run_one "${args[@]}"
+exit 0
