@@ -16,7 +16,8 @@
 # and run there with the tool's `run` (carry [".whl", ".gl"]). Each evaluation writes NAME.json (the `--json`
 # file), NAME.progress.jsonl (one line per finished episode, so a run stopped at its time limit still returns what
 # it did) and NAME.log into /tmp/device_eval, and after each one the whole folder is packed into
-# $OUT/device_eval.tgz (the tool returns at most 8 files). `--record-failures` among the EVAL-ARGS records every
+# $OUT/device_eval.tgz (the tool returns at most 8 files, 16 MiB each: two 500-episode test runs with their
+# failures' traces and four 200-episode dev runs came to more, and were fetched gzipped one file each in a second call). `--record-failures` among the EVAL-ARGS records every
 # episode's trace (`--record`) into NAME_rec and then keeps only the failures' traces, which is all that
 # scripts/attribution_counts.py and scripts/compare_evals.py read (500 traces are 36 MB). Several
 # NAME EVAL-ARGS groups may follow one another, separated by `--next`; they run one after the other. Setup is
