@@ -15,9 +15,9 @@
 #   apt-get $o update; (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 # and run there with the tool's `run` (carry [".whl", ".gl"]). Each evaluation writes NAME.json (the `--json`
 # file), NAME.progress.jsonl (one line per finished episode, so a run stopped at its time limit still returns what
-# it did) and NAME.log into /tmp/device_eval, and after each one the whole folder is packed into
-# $OUT/device_eval.tgz (the tool returns at most 8 files, 16 MiB each: two 500-episode test runs with their
-# failures' traces and four 200-episode dev runs came to more, and were fetched gzipped one file each in a second call). `--record-failures` among the EVAL-ARGS records every
+# it did) and NAME.log into /tmp/device_eval, and after each one packs them into $OUT/NAME.tgz (a 500-episode test
+# run with its failures' traces is about 8 MB packed); $OUT/machine.txt says what the machine was. The tool returns
+# at most 8 files of 16 MiB each, so one call takes at most 7 evaluations. `--record-failures` among the EVAL-ARGS records every
 # episode's trace (`--record`) into NAME_rec and then keeps only the failures' traces, which is all that
 # scripts/attribution_counts.py and scripts/compare_evals.py read (500 traces are 36 MB). Several
 # NAME EVAL-ARGS groups may follow one another, separated by `--next`; they run one after the other. Setup is
@@ -38,6 +38,7 @@ vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 { date -u; nvidia-smi -L; lscpu | grep 'Model name'; nproc
   python3 -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__, 'trimesh', trimesh.__version__)"
 } 2>&1 | tee -a "$W/machine.txt"
+cp "$W/machine.txt" "$OUT/"
 
 run_one() {
     local name=$1; shift
@@ -60,7 +61,9 @@ for e in json.load(open(sys.argv[1]))["episodes"]:
         trace_path(sys.argv[2], int(e["env_id"])).unlink(missing_ok=True)
 PY
     fi
-    tar czf "$OUT/device_eval.tgz.tmp" -C "$W" . && mv "$OUT/device_eval.tgz.tmp" "$OUT/device_eval.tgz"
+    local files=("$name".json "$name".progress.jsonl "$name".log)
+    [ -n "$record" ] && files+=("${name}_rec")
+    (cd "$W" && tar czf "$OUT/$name.tgz" --ignore-failed-read "${files[@]}")
 }
 
 args=()
