@@ -27,6 +27,7 @@ from gsmn.attribution import (
 )
 from gsmn.config import RunConfig
 from gsmn.model.checkpoint import load_checkpoint
+from gsmn.world.spec import on_field
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,7 +74,7 @@ def control_misses(attributions: list[Attribution | None]) -> dict[str, int]:
 def ended_outside(results: dict) -> int:
     """How many of an evaluation's episodes ended with the drone outside the field (world.field_size square)."""
     size = RunConfig.from_dict(results["config"]).world.field_size
-    return sum(not (0 <= r["final_x"] <= size and 0 <= r["final_y"] <= size) for r in results["episodes"])
+    return sum(not on_field(r["final_x"], r["final_y"], size) for r in results["episodes"])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,7 @@ from gsmn.world.assets import load_catalogue
 from gsmn.world.env import Action, Env
 from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.sim import Simulator, build_spec
-from gsmn.world.spec import WorldSpec, split_env_ids, split_of, world_for_env
+from gsmn.world.spec import WorldSpec, on_field, split_env_ids, split_of, world_for_env
 
 TINY = preset("tiny")
 IDS = range(300)
@@ -64,6 +64,16 @@ def test_start_is_a_corner_facing_45_degrees_in(worlds):
         assert math.isclose(w.start_yaw, to_centre, abs_tol=1e-9)
         assert abs(abs(math.remainder(w.start_yaw, math.pi / 2)) - math.pi / 4) < 1e-9
     assert corners == {0, 1, 2, 3}
+
+
+def test_on_field_includes_the_edges_and_nothing_beyond(worlds):
+    w = worlds[0]
+    assert w.on_field(w.start_position)  # the start is a corner
+    for xy in [(0, 0), (30, 30), (15, 0), (0, 15), (12.5, 27.25)]:
+        assert w.on_field(xy) and on_field(*xy, 30.0)
+    for xy in [(-0.01, 15), (15, -0.01), (30.01, 15), (15, 30.01), (-1, -1), (float("nan"), 15)]:
+        assert not w.on_field(xy) and not on_field(*xy, 30.0)
+    assert on_field(40, 40, 50.0) and not on_field(40, 40, 30.0)
 
 
 def test_same_id_same_world_and_different_ids_differ():

@@ -36,7 +36,7 @@ def demonstration_path(world: WorldSpec, goal_xy: np.ndarray, config: ExpertConf
     """Waypoints (N, 2) from the start to `goal_xy`, `config.waypoint_spacing` apart; the last is the goal."""
     config = config or ExpertConfig()
     goal = np.asarray(goal_xy, dtype=float)
-    if np.any(goal < 0) or np.any(goal > world.field_size):
+    if not world.on_field(goal):
         raise DemoPathError(f"environment {world.env_id}: the goal {goal.round(2).tolist()} is outside the field")
     flipped: set[int] = set()
     while True:
@@ -89,7 +89,7 @@ def _point_mass_trace(world: WorldSpec, goal: np.ndarray, config: ExpertConfig, 
                 goal_side = 1.0 if _cross(pos - centres[k], goal - centres[k]) >= 0 else -1.0
                 contact = (k, -goal_side if k in flipped else goal_side)
             new = _slide(pos, centres[k], radii[k], config.demo_step, contact[1])
-        if np.any(new < 0) or np.any(new > world.field_size):
+        if not world.on_field(new):
             raise _LeftField(None if contact is None else contact[0])
         trace.append(new)
         pos = new

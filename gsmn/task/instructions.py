@@ -89,7 +89,7 @@ def make_instruction(world: WorldSpec, landmark_index: int, side: str) -> Instru
 def acceptable(world: WorldSpec, instruction: Instruction, config: TaskConfig) -> bool:
     """The sampling rule: 6 m < |goal - start| < 60 m (and, by default, the goal inside the field)."""
     d = math.dist((instruction.goal_x, instruction.goal_y), (world.start_x, world.start_y))
-    inside = 0.0 <= instruction.goal_x <= world.field_size and 0.0 <= instruction.goal_y <= world.field_size
+    inside = world.on_field((instruction.goal_x, instruction.goal_y))
     return config.min_goal_distance < d < config.max_goal_distance and (inside or not config.goal_in_field)
 
 

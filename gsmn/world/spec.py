@@ -34,6 +34,11 @@ def split_of(env_id: int) -> str:
     return "train" if r < 70 else ("test" if r < 85 else "dev")
 
 
+def on_field(x: float, y: float, field_size: float) -> bool:
+    """Whether the point (x, y) lies on the field, the square [0, field_size]^2 (its edges included)."""
+    return 0.0 <= x <= field_size and 0.0 <= y <= field_size
+
+
 def split_env_ids(split: str, count: int, start: int = 0) -> list[int]:
     """The first `count` environment ids of a split, at or after `start`."""
     if split not in SPLITS:
@@ -91,6 +96,10 @@ class WorldSpec:
     @property
     def start_position(self) -> np.ndarray:
         return np.array([self.start_x, self.start_y])
+
+    def on_field(self, xy) -> bool:
+        """Whether the point `xy` (x, y) lies on this world's field (edges included)."""
+        return on_field(float(xy[0]), float(xy[1]), self.field_size)
 
     def landmarks_named(self, noun_phrase: str) -> tuple[LandmarkSpec, ...]:
         return tuple(lm for lm in self.landmarks if lm.noun_phrase == noun_phrase)
