@@ -30,6 +30,14 @@ def read_runs(folders: list[Path]) -> list[dict]:
     return records
 
 
+def x_label(folders: list[Path]) -> str:
+    """'DAggerFM iteration' when every run logs DAggerFM iterations (`gsmn train dagger`), else 'Epoch'."""
+    def is_dagger(folder: Path) -> bool:
+        first = next((line for line in (folder / "log.jsonl").read_text().splitlines() if line.strip()), "{}")
+        return "iteration" in json.loads(first)
+    return "DAggerFM iteration" if folders and all(is_dagger(f) for f in folders) else "Epoch"
+
+
 def parse_panels(argv: list[str]) -> tuple[list[tuple[str, list[Path]]], Path]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/accuracy_curves.png"))
@@ -66,7 +74,7 @@ def main(argv: list[str] | None = None) -> None:
                 ax.plot(epochs[: len(values)], values, marker="o", color=colour, label=name)
         ax.plot(epochs, [r["loss_action"] for r in records], marker="s", ls="--", color="black",
                 label="action loss (dev)")
-        ax.set(title=label, xlabel="Epoch", ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
+        ax.set(title=label, xlabel=x_label(folders), ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
         ax.grid(axis="y", ls="--", alpha=0.6)
     axes[0][0].set_ylabel("Dev accuracy")
     handles = {}  # every curve drawn in any panel (a run without J_plan has no goal curve), once each
