@@ -17,8 +17,8 @@
 # file), NAME.progress.jsonl (one line per finished episode, so a run stopped at its time limit still returns what
 # it did) and NAME.log into /tmp/device_eval, and after each one packs them into $OUT/NAME.tgz (a 500-episode test
 # run with its failures' traces is about 8 MB packed); $OUT/machine.txt says what the machine was. The tool returns
-# at most 8 files of 16 MiB each, so one call takes at most 7 evaluations. `--record-failures` among the EVAL-ARGS records every
-# episode's trace (`--record`) into NAME_rec and then keeps only the failures' traces, which is all that
+# at most 8 files of 16 MiB each, so one call takes at most 7 evaluations. `--record-failures` among the EVAL-ARGS
+# records every episode's trace (`--record`) into NAME_rec and then keeps only the failures' traces, which is all that
 # scripts/attribution_counts.py and scripts/compare_evals.py read (500 traces are 36 MB). Several
 # NAME EVAL-ARGS groups may follow one another, separated by `--next`; they run one after the other. Setup is
 # skipped when the same machine runs the script again.

@@ -19,23 +19,19 @@ CURVES = [("acc_perception", "Perception", "tab:red"), ("acc_grounding", "Ground
           ("acc_instruction_side", "Instruction: side", "tab:green")]
 
 
-def read_runs(folders: list[Path]) -> list[dict]:
-    records = []
+def read_runs(folders: list[Path]) -> tuple[list[dict], str]:
+    """The dev records of the runs, in order, and the x axis's unit: 'DAggerFM iteration' when every logged record
+    is a DAggerFM iteration (`gsmn train dagger`), else 'Epoch'."""
+    records, logged, dagger = [], 0, True
     for folder in folders:
         for line in (folder / "log.jsonl").read_text().splitlines():
             if line.strip():
                 record = json.loads(line)
+                logged += 1
+                dagger = dagger and "iteration" in record
                 if "dev" in record:
                     records.append(record["dev"])
-    return records
-
-
-def x_label(folders: list[Path]) -> str:
-    """'DAggerFM iteration' when every run logs DAggerFM iterations (`gsmn train dagger`), else 'Epoch'."""
-    def is_dagger(folder: Path) -> bool:
-        first = next((line for line in (folder / "log.jsonl").read_text().splitlines() if line.strip()), "{}")
-        return "iteration" in json.loads(first)
-    return "DAggerFM iteration" if folders and all(is_dagger(f) for f in folders) else "Epoch"
+    return records, "DAggerFM iteration" if logged and dagger else "Epoch"
 
 
 def parse_panels(argv: list[str]) -> tuple[list[tuple[str, list[Path]]], Path]:
@@ -66,7 +62,7 @@ def main(argv: list[str] | None = None) -> None:
     panels, out = parse_panels(argv)
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.6), squeeze=False, sharey=True)
     for ax, (label, folders) in zip(axes[0], panels, strict=True):
-        records = read_runs(folders)
+        records, unit = read_runs(folders)
         epochs = list(range(1, len(records) + 1))
         for key, name, colour in CURVES:
             values = [r[key] for r in records if key in r]
@@ -74,7 +70,7 @@ def main(argv: list[str] | None = None) -> None:
                 ax.plot(epochs[: len(values)], values, marker="o", color=colour, label=name)
         ax.plot(epochs, [r["loss_action"] for r in records], marker="s", ls="--", color="black",
                 label="action loss (dev)")
-        ax.set(title=label, xlabel=x_label(folders), ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
+        ax.set(title=label, xlabel=unit, ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
         ax.grid(axis="y", ls="--", alpha=0.6)
     axes[0][0].set_ylabel("Dev accuracy")
     handles = {}  # every curve drawn in any panel (a run without J_plan has no goal curve), once each
