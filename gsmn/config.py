@@ -273,9 +273,12 @@ class TrainConfig:
     seed: int = _f(0, "seeds episode order, dropout and sampled negatives, per (epoch, batch): resumes exactly")
     save_every_seconds: float = _f(120.0, "save resumable state at least this often (and after every epoch)")
     threads: int = _f(2, "torch CPU threads")
+    mirror: float = _f(0.0, "probability that a training episode is mirrored east-west (images flipped, left and "
+                       "right swapped; not in the paper: docs/design.md); 0 = off")
 
     def __post_init__(self) -> None:
         _check(self.epochs >= 1, "train.epochs must be >= 1")
+        _check(0.0 <= self.mirror <= 1.0, "train.mirror must be a probability in [0, 1]")
         _check(self.batch_size >= 1, "train.batch_size must be >= 1")
         _check(self.learning_rate > 0 and self.weight_decay >= 0, "train.learning_rate > 0, weight_decay >= 0")
         _check(self.save_every_seconds >= 0, "train.save_every_seconds must be >= 0")

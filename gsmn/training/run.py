@@ -49,11 +49,26 @@ class TrainState:
 
 
 EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
+ADJUSTABLE = (("train", "mirror"),)  # may change when a run resumes: what the next batches see, not what was saved
+
+
+def _normalised(saved: dict) -> dict:
+    """A saved config.json with the defaults of fields added since it was written (an older run resumes)."""
+    try:
+        return json.loads(RunConfig.from_dict(saved).to_json())
+    except (TypeError, ValueError):  # unknown fields or bad values: compare as written, and the comparison fails
+        return saved
 
 
 def _is_extension(saved: dict, new: dict) -> bool:
-    """`new` equals `saved` but for a length in EXTENDABLE that did not shrink (and at least one that grew)."""
+    """`new` equals `saved` but for a length in EXTENDABLE that did not shrink (and at least one that grew) and the
+    settings in ADJUSTABLE."""
     trimmed_saved, trimmed_new = copy.deepcopy(saved), copy.deepcopy(new)
+    for section, key in ADJUSTABLE:
+        trimmed_saved.get(section, {}).pop(key, None)
+        trimmed_new.get(section, {}).pop(key, None)
+    if trimmed_saved == trimmed_new:
+        return True
     grew = False
     for section, key in EXTENDABLE:
         old_value = trimmed_saved.get(section, {}).pop(key, None)
@@ -82,14 +97,15 @@ class RunFolder:
         return self.root / "log.jsonl"
 
     def start(self, config: RunConfig) -> None:
-        """Create the folder, or check that an existing one was made with the same configuration. The one change
-        allowed is a longer run (more `train.epochs` or `dagger.iterations`, see EXTENDABLE): the run continues
-        from its saved state and the new length is recorded."""
+        """Create the folder, or check that an existing one was made with the same configuration. The changes
+        allowed are a longer run (more `train.epochs` or `dagger.iterations`, see EXTENDABLE) and the settings in
+        ADJUSTABLE (the mirror augmentation): the run continues from its saved state and the new configuration is
+        recorded. Fields added to the configuration since the run was saved take their defaults."""
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / "config.json"
         new = json.loads(config.to_json())
         if path.is_file():
-            saved = json.loads(path.read_text())
+            saved = _normalised(json.loads(path.read_text()))
             if saved == new:
                 return
             if not _is_extension(saved, new):

@@ -23,6 +23,7 @@ from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_optimiz
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
 from gsmn.model.vocabulary import Vocabulary
+from gsmn.training.augment import maybe_mirror
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 
@@ -137,8 +138,9 @@ def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vo
     progress = {"phase": "train", **(progress or {"epoch": epoch + 1})}
     while state.batch < len(batches):
         t0 = time.monotonic()
-        samples = [store.read(key) for key in batches[state.batch]]
-        values = train_step(model, optimizer, samples, vocabulary, config, batch_seed(tc.seed, epoch, state.batch))
+        seed = batch_seed(tc.seed, epoch, state.batch)
+        samples = maybe_mirror([store.read(key) for key in batches[state.batch]], tc.mirror, seed)
+        values = train_step(model, optimizer, samples, vocabulary, config, seed)
         values["seconds"] = time.monotonic() - t0
         _accumulate(state.sums, state.counts, values)
         state.batch += 1
@@ -172,6 +174,8 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
                  log: Logger) -> None:
     """Validate, log, write the checkpoint, and save the state of the next epoch."""
     record.update(step=state.step, seconds=round(state.seconds, 1), train=_means(state.sums, state.counts))
+    if config.train.mirror:
+        record["mirror"] = config.train.mirror
     if dev_store is not None and len(dev_store):
         record["dev"] = validate(model, dev_store, vocabulary, config, config.train.batch_size)
     run.log(record)
