@@ -31,7 +31,7 @@ SWAPPED_SIDES = {"left": "right", "right": "left"}
 
 
 def _yaw(yaw: float | np.ndarray) -> float | np.ndarray:
-    """pi - yaw, wrapped to (-pi, pi]."""
+    """pi - yaw, wrapped into [-pi, pi] (atan2)."""
     out = np.arctan2(np.sin(np.pi - np.asarray(yaw)), np.cos(np.pi - np.asarray(yaw)))
     return float(out) if np.ndim(out) == 0 else out.astype(np.asarray(yaw).dtype)
 
@@ -52,6 +52,7 @@ def mirror_text(text: str) -> str:
 
 
 def mirror_instruction(instruction: Instruction, field_size: float) -> Instruction:
+    """The instruction in the mirrored world: left and right swapped in its side and text, its goal reflected."""
     return replace(instruction, text=mirror_text(instruction.text),
                    side=SWAPPED_SIDES.get(instruction.side, instruction.side), goal_x=field_size - instruction.goal_x)
 
@@ -84,4 +85,3 @@ def maybe_mirror(samples: list[EpisodeSample], probability: float, seed: int) ->
         return samples
     draws = np.random.default_rng(np.random.SeedSequence([seed, 0x6D6972])).random(len(samples))
     return [mirror_episode(s) if u < probability else s for s, u in zip(samples, draws, strict=True)]
-
