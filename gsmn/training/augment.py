@@ -24,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from gsmn.model.batch import EpisodeSample
+from gsmn.task.expert import wrap_angle
 from gsmn.task.instructions import Instruction, tokenize
 from gsmn.world.spec import WorldSpec
 
@@ -31,9 +32,8 @@ SWAPPED_SIDES = {"left": "right", "right": "left"}
 
 
 def _yaw(yaw: float | np.ndarray) -> float | np.ndarray:
-    """pi - yaw, wrapped into [-pi, pi] (atan2)."""
-    out = np.arctan2(np.sin(np.pi - np.asarray(yaw)), np.cos(np.pi - np.asarray(yaw)))
-    return float(out) if np.ndim(out) == 0 else out.astype(np.asarray(yaw).dtype)
+    """pi - yaw, wrapped (elementwise for arrays, keeping their dtype)."""
+    return wrap_angle(np.pi - yaw)
 
 
 def mirror_world(world: WorldSpec) -> WorldSpec:
