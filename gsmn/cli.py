@@ -156,7 +156,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 progress.write(record)
 
         records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers, on_episode=on_episode,
-                           record_dir=args.record)
+                           record_dir=args.record, mirror_ensemble=args.mirror_ensemble)
     seconds = time.perf_counter() - t0
     summary = summarize(records, config.task.success_radius)
     print(TABLE_HEADER)
@@ -165,7 +165,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(f"{len(records)} episodes ({pruned} unambiguous) in {seconds:.0f} s with {args.workers} worker(s): "
           f"{60 * len(records) / seconds:.1f} episodes/min")
     if args.json:
-        write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers))
+        write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers,
+                                                 args.mirror_ensemble))
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 
@@ -328,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", default=None, help="folder for each episode's final maps and per-step readings "
                    "(GSMN only), for failure attribution")
     p.add_argument("--progress", default=None, help="append one JSON line per finished episode to this file")
+    p.add_argument("--mirror-ensemble", action="store_true",
+                   help="fly a learned model as a test-time mirror ensemble: it also flies the mirror image of each "
+                        "step and the two actions are averaged (twice the compute; not in the paper)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_eval)
 

@@ -39,7 +39,12 @@ LEARNED_SYSTEMS = ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem")
 SYSTEMS = LEARNED_SYSTEMS + TRIVIAL_SYSTEMS
 
 
-def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None) -> Policy:
+def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None,
+                mirror_ensemble: bool = False) -> Policy:
+    """The policy of a system. `mirror_ensemble` (learned systems only) flies the model as a test-time mirror
+    ensemble (`gsmn.model.policy.MirrorEnsemble`)."""
+    if mirror_ensemble and system not in LEARNED_SYSTEMS:
+        raise ValueError(f"--mirror-ensemble needs a learned system ({', '.join(LEARNED_SYSTEMS)}), not {system!r}")
     if system == "oracle":
         return ExpertPolicy(config)
     if system == "random-point":
@@ -55,6 +60,10 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
         policy = load_policy(folder)
         if policy.model.kind != system:
             raise ValueError(f"{folder} holds a {policy.model.kind!r} model, not {system!r}")
+        if mirror_ensemble:
+            from gsmn.model.policy import MirrorEnsemble
+
+            return MirrorEnsemble(policy)
         return policy
     raise ValueError(f"unknown system {system!r}; available: {', '.join(SYSTEMS)}")
 
@@ -87,12 +96,12 @@ _worker: dict = {}
 
 
 def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None,
-                 threads: int | None = None, record_dir: str | None = None) -> None:
+                 threads: int | None = None, record_dir: str | None = None, mirror_ensemble: bool = False) -> None:
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    _use(make_policy(system, config, checkpoint), config, render, record_dir)
+    _use(make_policy(system, config, checkpoint, mirror_ensemble), config, render, record_dir)
 
 
 def _use(policy: Policy, config: RunConfig, render: bool | None, record_dir: str | None = None) -> None:
@@ -118,13 +127,14 @@ def _run_one(env_id: int) -> EpisodeRecord:
 
 def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint: str | Path | None = None,
              workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
-             render: bool | None = None, record_dir: str | Path | None = None) -> list[EpisodeRecord]:
+             render: bool | None = None, record_dir: str | Path | None = None,
+             mirror_ensemble: bool = False) -> list[EpisodeRecord]:
     """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
     on or off (default: only for policies that look). `record_dir`: write each episode's ModelTrace there
-    (GSMN only; other systems have no maps and write nothing)."""
+    (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`: see `make_policy`."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
     record_dir = str(record_dir) if record_dir is not None else None
-    policy = make_policy(system, config, checkpoint)  # fails here, clearly, before any worker starts
+    policy = make_policy(system, config, checkpoint, mirror_ensemble)  # fails here, clearly, before any worker starts
     records = []
     if workers <= 1:
         _use(policy, config, render, record_dir)
@@ -138,7 +148,8 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
         return records
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                               initargs=(system, config, checkpoint, render, 1, record_dir))  # a core each
+                               initargs=(system, config, checkpoint, render, 1, record_dir,  # a core each
+                                         mirror_ensemble))
     try:
         for record in pool.map(_run_one, env_ids):
             records.append(record)
@@ -161,11 +172,12 @@ def table_row(system: str, s: Summary) -> str:
 
 
 def results_dict(system: str, checkpoint: str | None, records: list[EpisodeRecord], config: RunConfig,
-                 seconds: float, workers: int) -> dict:
+                 seconds: float, workers: int, mirror_ensemble: bool = False) -> dict:
     summary = summarize(records, config.task.success_radius)
     return {
-        "system": system, "checkpoint": checkpoint, "env_ids": [r.env_id for r in records],
-        "summary": summary.to_dict(), "seconds": round(seconds, 2), "workers": workers,
+        "system": system, "checkpoint": checkpoint, "mirror_ensemble": mirror_ensemble,
+        "env_ids": [r.env_id for r in records], "summary": summary.to_dict(), "seconds": round(seconds, 2),
+        "workers": workers,
         "machine": platform.machine(), "config": config.to_dict(),
         "episodes": [r.to_dict() for r in records],
     }
@@ -195,6 +207,8 @@ def merge_results(parts: Sequence[dict]) -> dict:
     for part in parts:
         if part["system"] != first["system"]:
             raise ValueError(f"different systems: {first['system']} and {part['system']}")
+        if part.get("mirror_ensemble", False) != first.get("mirror_ensemble", False):
+            raise ValueError("one evaluation ran as a mirror ensemble, another did not")
         if part["config"] != first["config"]:
             raise ValueError("the evaluations ran with different settings")
         if part["checkpoint"] != first["checkpoint"]:
@@ -209,6 +223,7 @@ def merge_results(parts: Sequence[dict]) -> dict:
     config = RunConfig.from_dict(first["config"])
     return {
         "system": first["system"], "checkpoint": first["checkpoint"],
+        "mirror_ensemble": first.get("mirror_ensemble", False),
         "env_ids": [e for part in parts for e in part["env_ids"]],
         "summary": summarize(episodes, config.task.success_radius).to_dict(),
         "seconds": round(sum(part["seconds"] for part in parts), 2),

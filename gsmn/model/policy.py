@@ -84,3 +84,54 @@ class ModelPolicy:
 
 
 GSMNPolicy = ModelPolicy
+
+
+class MirrorEnsemble:
+    """A test-time mirror ensemble of one model (not in the paper; docs/design.md, "Mirror ensemble").
+
+    Two copies of the model's runtime state fly each episode side by side: one on what the drone observes, one
+    on the east-west mirror image of it (`gsmn.task.mirror`: the image flipped, the pose and camera reflected,
+    "left" and "right" swapped in the instruction), each with its own semantic map. Their actions are averaged,
+    the mirrored copy's yaw rate negated back: v = (v + v') / 2, omega = (omega - omega') / 2, STOP when the mean
+    of the two stop probabilities is above 0.5. A model that is not perfectly mirror-symmetric (none is) makes
+    errors in the two copies that partly cancel. Twice the model's compute per step.
+
+    `last_outputs` and `counterfactual` are the unmirrored copy's (what the dashboard shows)."""
+
+    needs_images = True
+
+    def __init__(self, policy: ModelPolicy):
+        self.policy = policy
+        self.mirrored = ModelPolicy(policy.model, policy.vocabulary, policy.config, policy.name)
+        self.name = policy.name
+        self.model, self.vocabulary, self.config = policy.model, policy.vocabulary, policy.config
+        self.field_size: float | None = None
+
+    @property
+    def last_outputs(self) -> Outputs | None:
+        return self.policy.last_outputs
+
+    def reset(self, task: Task) -> None:
+        from gsmn.task.mirror import mirror_instruction, mirror_world
+
+        F = task.world.field_size
+        path = task.path.copy()
+        path[:, 0] = F - path[:, 0]
+        self.policy.reset(task)
+        self.mirrored.reset(Task(mirror_world(task.world), mirror_instruction(task.instruction, F), path))
+        self.field_size = F
+
+    def act(self, obs: Observation) -> PolicyAction:
+        from gsmn.task.mirror import mirror_observation
+
+        if self.field_size is None:
+            raise RuntimeError("call reset(task) before act")
+        a = self.policy.act(obs)
+        b = self.mirrored.act(mirror_observation(obs, self.field_size))
+        p_stop = (torch.sigmoid(self.policy.last_outputs.stop_logit[0, 0])
+                  + torch.sigmoid(self.mirrored.last_outputs.stop_logit[0, 0])) / 2
+        return PolicyAction(forward_velocity=(a.forward_velocity + b.forward_velocity) / 2,
+                            yaw_rate=(a.yaw_rate - b.yaw_rate) / 2, stop=bool(p_stop > 0.5))
+
+    def counterfactual(self, text: str) -> GroundingOutputs:
+        return self.policy.counterfactual(text)

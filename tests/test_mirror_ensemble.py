@@ -1,0 +1,110 @@
+"""The test-time mirror ensemble (gsmn/model/policy.py MirrorEnsemble) and the mirrored observation it flies
+(gsmn/task/mirror.py), checked with the real simulator, renderer and shipped GSMN checkpoint."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gsmn.config import preset
+from gsmn.evaluation import REPO_ROOT, make_policy, merge_results, results_dict
+from gsmn.model.checkpoint import load_policy
+from gsmn.model.policy import MirrorEnsemble
+from gsmn.task.baselines import ExpertPolicy
+from gsmn.task.demo import demonstration_path
+from gsmn.task.mirror import mirror_instruction, mirror_observation, mirror_world
+from gsmn.task.rollout import Task, task_for_env
+from gsmn.world.env import Action, Env
+
+TINY = preset("tiny")
+CHECKPOINT = REPO_ROOT / "checkpoints" / "gsmn"
+
+
+def mirrored_task(task: Task, config) -> Task:
+    world = mirror_world(task.world)
+    instruction = mirror_instruction(task.instruction, world.field_size)
+    return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+
+
+def fly_expert(env: Env, task: Task, config, steps: int) -> list:
+    expert = ExpertPolicy(config)
+    observations = [env.reset(task.world.env_id, task.instruction.text, task.world)]
+    expert.reset(task)
+    for _ in range(steps - 1):
+        a = expert.act(observations[-1])
+        observations.append(env.step(Action(a.forward_velocity, a.yaw_rate)))
+    return observations
+
+
+@pytest.fixture(scope="module")
+def flight():
+    """Twelve real observations of the expert flying environment 85 (the shipped model's settings), its task, and
+    the expert's first twelve in the mirrored world (the mirror of its flight: tests/test_augment.py)."""
+    config = load_policy(CHECKPOINT).config
+    task = task_for_env(85, config)
+    with Env(config) as env:
+        observations = fly_expert(env, task, config, 12)
+        in_mirror = fly_expert(env, mirrored_task(task, config), config, 12)
+    return config, task, observations, in_mirror
+
+
+def test_mirrored_observation_is_what_the_mirrored_world_shows(flight):
+    _, task, observations, in_mirror = flight
+    F = task.world.field_size
+    for obs, there in zip(observations, in_mirror, strict=True):
+        m = mirror_observation(obs, F)
+        assert np.allclose(m.pose.position, there.pose.position, atol=2e-3)
+        assert np.isclose(np.cos(m.pose.yaw - there.pose.yaw), 1.0)
+        assert np.allclose(m.pose.R_world_body, there.pose.R_world_body, atol=2e-3)
+        assert np.allclose(m.T_world_camera, there.T_world_camera, atol=2e-3)
+        assert np.isclose(np.linalg.det(m.T_world_camera[:3, :3]), 1.0, atol=1e-5)
+        back = mirror_observation(m, F)  # the reflection is its own inverse
+        assert np.array_equal(back.image, obs.image) and np.allclose(back.T_world_camera, obs.T_world_camera)
+    # the flipped image is what the mirrored world renders, up to the landmark meshes (rotated, not reflected)
+    obs, there = observations[0], in_mirror[0].image.astype(np.float32)
+    flipped = np.abs(mirror_observation(obs, F).image.astype(np.float32) - there).mean()
+    assert flipped < 0.5 * np.abs(obs.image.astype(np.float32) - there).mean()
+
+
+def test_ensemble_averages_the_model_and_its_mirror_and_is_mirror_symmetric(flight):
+    """Flown on a flight and on that flight's mirror image, the ensemble gives mirrored actions (same speed and
+    STOP, opposite yaw rate): its two copies swap roles. Each action is the mean of the plain model's on the
+    observation and, yaw rate negated, on its mirror image."""
+    config, task, observations, _ = flight
+    F = task.world.field_size
+    ensemble, in_mirror = MirrorEnsemble(load_policy(CHECKPOINT)), MirrorEnsemble(load_policy(CHECKPOINT))
+    plain, plain_mirror = load_policy(CHECKPOINT), load_policy(CHECKPOINT)
+    mirror = mirrored_task(task, config)
+    ensemble.reset(task), in_mirror.reset(mirror), plain.reset(task), plain_mirror.reset(mirror)
+    differs = 0.0
+    for obs in observations:
+        m = mirror_observation(obs, F)
+        a, b = ensemble.act(obs), in_mirror.act(m)
+        assert a.forward_velocity == pytest.approx(b.forward_velocity, abs=1e-4)
+        assert a.yaw_rate == pytest.approx(-b.yaw_rate, abs=1e-4)
+        assert a.stop == b.stop
+        p, q = plain.act(obs), plain_mirror.act(m)
+        assert a.forward_velocity == pytest.approx((p.forward_velocity + q.forward_velocity) / 2, abs=1e-4)
+        assert a.yaw_rate == pytest.approx((p.yaw_rate - q.yaw_rate) / 2, abs=1e-4)
+        differs = max(differs, abs(a.yaw_rate - p.yaw_rate), abs(a.forward_velocity - p.forward_velocity))
+    assert differs > 1e-3  # the mirrored copy changes something: the ensemble is not the plain model
+    assert ensemble.last_outputs is ensemble.policy.last_outputs  # the dashboard sees the unmirrored maps
+
+
+def test_mirror_ensemble_only_for_learned_systems_and_never_merged_with_a_plain_run(tmp_path):
+    with pytest.raises(ValueError, match="learned system"):
+        make_policy("oracle", TINY, mirror_ensemble=True)
+    assert isinstance(make_policy("gsmn", TINY, CHECKPOINT, mirror_ensemble=True), MirrorEnsemble)
+    out = tmp_path / "ens.json"
+    run = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "gsmn", "--env-ids", "85",
+                          "--mirror-ensemble", "--json", str(out)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    d = json.loads(out.read_text())
+    assert d["mirror_ensemble"] is True and len(d["episodes"]) == 1
+    plain = results_dict("random-point", None, [], TINY, 0.0, 1)
+    with pytest.raises(ValueError, match="mirror ensemble"):
+        merge_results([{**plain, "mirror_ensemble": True, "env_ids": [1], "episodes": []}, plain])
