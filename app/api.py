@@ -42,8 +42,10 @@ class EpisodeRequest(_Strict):
                                     "barrel'; omitted: the environment's own instruction")
     checkpoint: str | None = Field(None, description="a checkpoint name under checkpoints/ or a folder; omitted: "
                                    "the default checkpoint")
-    policy: Literal["model", "expert"] = Field("model", description="who flies: the model, or the expert (with the "
-                                               "model watching, when one is loaded)")
+    policy: Literal["model", "mirror", "expert"] = Field(
+        "model", description="who flies: the model; the model as a test-time mirror ensemble (it also flies the "
+        "mirror image of each step and the two actions are averaged; the maps are the unmirrored copy's); or the "
+        "expert (with the model watching, when one is loaded)")
 
 
 class EpisodeCreated(BaseModel):

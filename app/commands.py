@@ -17,7 +17,7 @@ from gsmn.task.instructions import Instruction
 from gsmn.task.rollout import Task
 from gsmn.world.spec import WorldSpec
 
-POLICIES = ("model", "expert")
+POLICIES = ("model", "mirror", "expert")  # "mirror": the model as a test-time mirror ensemble
 MAX_ENV_ID = 2**31 - 1
 
 
@@ -51,7 +51,7 @@ class ShowEnv(Command):
 class StartEpisode(Command):
     env_id: int
     instruction: str | None = None  # None: the environment's own instruction
-    policy: str = "model"  # "model" or "expert"
+    policy: str = "model"  # "model", "mirror" (the model as a mirror ensemble) or "expert"
     checkpoint: str | None = None  # None: the default checkpoint
     preempt: bool = False  # end the live episode and fly this one now (the page); else queue it (the API)
     paused: bool = False  # stop after the first step (single-stepping from the start)

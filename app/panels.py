@@ -37,8 +37,8 @@ def other_side(text: str, side: str) -> str:
 
 
 def status_line(episode: Episode) -> str:
-    flying = "the model" if episode.policy == "model" else "the expert" + (
-        " (the model watching)" if episode.checkpoint else "")
+    flying = {"model": "the model", "mirror": "the model as a mirror ensemble (maps: the unmirrored copy's)"}.get(
+        episode.policy, "the expert" + (" (the model watching)" if episode.checkpoint else ""))
     state = {"queued": "queued", "running": "flying", "paused": "paused", "finished": "finished",
              "cancelled": "stopped early", "failed": "failed"}[episode.status]
     text = (f"**Episode {episode.id}** ({state}): {flying} in environment {episode.env_id}, "

@@ -80,7 +80,7 @@ class EpisodeResult:
 class Episode:
     id: int
     task: Task
-    policy: str  # "model" or "expert"
+    policy: str  # "model", "mirror" (the model as a mirror ensemble) or "expert"
     system: str  # what flies: the checkpoint's kind or "oracle"
     checkpoint: str | None  # the model whose maps are recorded (None: no maps)
     horizon: int

@@ -351,7 +351,7 @@ class Runner:
             model = self.models[self.default_model]
         else:
             model = None
-        if c.policy == "model" and model is None:
+        if c.policy != "expert" and model is None:
             raise Conflict(f"no checkpoint to fly: {self.checkpoint_message} Choose the expert, or name a "
                            f"checkpoint.")
         world = world_for_env(int(c.env_id), self.config.world)
@@ -372,7 +372,7 @@ class Runner:
                     raise RunnerError(f"the expert has no path to that goal ({e}); try another side") from e
                 task = _straight_task(world, instruction, self.config.expert.waypoint_spacing)
         episode = Episode(id=self.episodes.new_id(), task=task, policy=c.policy,
-                          system=model.policy.name if c.policy == "model" else ExpertPolicy.name,
+                          system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
                           horizon=self.config.task.horizon, start_paused=c.paused)
         self.episodes.add(episode)
@@ -464,6 +464,10 @@ class Runner:
         watcher = model.policy if model else None
         if episode.policy == "model":
             policy = watcher
+        elif episode.policy == "mirror":  # the maps recorded are the unmirrored copy's (MirrorEnsemble)
+            from gsmn.model.policy import MirrorEnsemble
+
+            policy = MirrorEnsemble(watcher)
         else:
             expert = ExpertPolicy(self.config)
             policy = WatchedPolicy(expert, watcher) if watcher is not None else expert

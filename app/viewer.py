@@ -161,6 +161,10 @@ class Viewer(RunnerListener):
             choices = self._policy_choices()
             self.policy = gui.add_dropdown("Policy", choices, initial_value=choices[0],
                                            hint="the expert flies with the model watching, when there is one")
+            self.mirror = gui.add_checkbox("Mirror ensemble", False,
+                                           hint="the model also flies the mirror image of each step (left and right "
+                                                "swapped) and the two actions are averaged; the maps shown are the "
+                                                "unmirrored copy's")
             self.instruction = gui.add_text("Instruction", "", hint="e.g. go to the left side of the barrel")
             self.instruction_note = gui.add_markdown("")
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
@@ -244,7 +248,7 @@ class Viewer(RunnerListener):
         if choice == EXPERT_CHOICE:
             return "expert", None
         name = choice.removeprefix("Model: ")
-        return "model", name
+        return ("mirror" if self.mirror.value else "model"), name
 
     # -- callbacks (viser's thread pool: post commands, enqueue events) -----------------------------------------
     def _on_env_button(self, event: viser.GuiEvent) -> None:

@@ -90,6 +90,17 @@ def test_model_episode_records_every_step(runner):
     assert episode.steps_per_second() > 0
 
 
+def test_mirror_ensemble_flies_and_records_the_unmirrored_maps(runner):
+    """policy "mirror": the model as a test-time mirror ensemble. The flown actions are the ensemble's, the
+    recorded maps and the model's own action are the unmirrored copy's, so the two differ."""
+    episode = runner.call(StartEpisode(70, None, "mirror"))
+    wait_for(lambda: not episode.live, what="the mirror-ensemble episode to finish")
+    assert episode.status == FINISHED and episode.policy == "mirror" and episode.system == "gsmn"
+    assert all(s.maps is not None for s in episode.steps)
+    gaps = [abs(s.omega - s.maps.omega) + abs(s.v - s.maps.v) for s in episode.steps if not s.stop]
+    assert max(gaps) > 1e-4
+
+
 def test_expert_flies_while_the_model_watches(runner):
     episode = runner.call(StartEpisode(70, None, "expert"))
     wait_for(lambda: not episode.live, what="the expert episode")
