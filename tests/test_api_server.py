@@ -125,6 +125,14 @@ def test_the_expert_on_its_own_instruction(server):
     assert body["result"]["goal_distance"] >= 0
 
 
+def test_the_model_as_a_mirror_ensemble(server):
+    client = server["client"]
+    created = client.post("/api/episodes", json={"env_id": 72, "policy": "mirror"}).json()
+    assert created["policy"] == "mirror"
+    body = finished(client, created["id"])
+    assert body["status"] == "finished" and body["policy"] == "mirror" and body["system"] == "gsmn"
+
+
 @pytest.mark.parametrize("method, path, payload, status, words", [
     ("post", "/api/episodes", {"env_id": -1}, 422, "env_id"),
     ("post", "/api/episodes", {"env_id": "seventy"}, 422, "env_id"),
