@@ -16,7 +16,7 @@ from gsmn.model.checkpoint import load_policy
 from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.demo import demonstration_path
-from gsmn.task.mirror import mirror_instruction, mirror_observation, mirror_world
+from gsmn.task.mirror import mirror_instruction, mirror_observation, mirror_task, mirror_world
 from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
 
@@ -64,6 +64,11 @@ def test_mirrored_observation_is_what_the_mirrored_world_shows(flight):
         assert np.isclose(np.linalg.det(m.T_world_camera[:3, :3]), 1.0, atol=1e-5)
         back = mirror_observation(m, F)  # the reflection is its own inverse
         assert np.array_equal(back.image, obs.image) and np.allclose(back.T_world_camera, obs.T_world_camera)
+    # the mirrored task: its path runs from the mirrored start to the mirrored goal, and reflects back
+    m = mirror_task(task)
+    assert np.allclose(m.path[0], m.world.start_position) and np.allclose(m.path[-1], (m.instruction.goal_x,
+                                                                                         m.instruction.goal_y))
+    assert np.allclose(mirror_task(m).path, task.path) and mirror_task(m).instruction.side == task.instruction.side
     # the flipped image is what the mirrored world renders, up to the landmark meshes (rotated, not reflected)
     obs, there = observations[0], in_mirror[0].image.astype(np.float32)
     flipped = np.abs(mirror_observation(obs, F).image.astype(np.float32) - there).mean()

@@ -17,6 +17,7 @@ from gsmn.model.filters import InstructionKernels
 from gsmn.model.gsmn import GSMN, GroundingOutputs
 from gsmn.model.models import Model, Outputs
 from gsmn.model.vocabulary import Vocabulary
+from gsmn.task.mirror import mirror_observation, mirror_task
 from gsmn.task.rollout import PolicyAction, Task
 from gsmn.world.env import Observation
 
@@ -112,18 +113,11 @@ class MirrorEnsemble:
         return self.policy.last_outputs
 
     def reset(self, task: Task) -> None:
-        from gsmn.task.mirror import mirror_instruction, mirror_world
-
-        F = task.world.field_size
-        path = task.path.copy()
-        path[:, 0] = F - path[:, 0]
         self.policy.reset(task)
-        self.mirrored.reset(Task(mirror_world(task.world), mirror_instruction(task.instruction, F), path))
-        self.field_size = F
+        self.mirrored.reset(mirror_task(task))
+        self.field_size = task.world.field_size
 
     def act(self, obs: Observation) -> PolicyAction:
-        from gsmn.task.mirror import mirror_observation
-
         if self.field_size is None:
             raise RuntimeError("call reset(task) before act")
         a = self.policy.act(obs)

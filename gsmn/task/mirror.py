@@ -25,6 +25,7 @@ import numpy as np
 
 from gsmn.task.expert import wrap_angle
 from gsmn.task.instructions import Instruction, tokenize
+from gsmn.task.rollout import Task
 from gsmn.world.env import Observation, Pose
 from gsmn.world.spec import WorldSpec
 
@@ -57,6 +58,14 @@ def mirror_instruction(instruction: Instruction, field_size: float) -> Instructi
     """The instruction in the mirrored world: left and right swapped in its side and text, its goal reflected."""
     return replace(instruction, text=mirror_text(instruction.text),
                    side=SWAPPED_SIDES.get(instruction.side, instruction.side), goal_x=field_size - instruction.goal_x)
+
+
+def mirror_task(task: Task) -> Task:
+    """The task in the mirrored world: world and instruction mirrored, the demonstration path reflected."""
+    F = task.world.field_size
+    path = np.array(task.path, dtype=np.float64, copy=True)
+    path[:, 0] = F - path[:, 0]
+    return Task(mirror_world(task.world), mirror_instruction(task.instruction, F), path)
 
 
 def mirror_camera(T_world_camera: np.ndarray, field_size: float) -> np.ndarray:
