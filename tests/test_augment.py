@@ -16,8 +16,9 @@ from gsmn.model.vocabulary import Vocabulary
 from gsmn.task.demo import demonstration_path
 from gsmn.task.instructions import SIDES, goal_position
 from gsmn.task.metrics import side_of
+from gsmn.task.mirror import mirror_instruction, mirror_world
 from gsmn.task.rollout import Task, task_for_env
-from gsmn.training.augment import maybe_mirror, mirror_episode, mirror_instruction, mirror_world
+from gsmn.training.augment import maybe_mirror, mirror_episode
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunError, RunFolder
 from gsmn.world.env import Env

@@ -105,7 +105,7 @@ class MirrorEnsemble:
         self.policy = policy
         self.mirrored = ModelPolicy(policy.model, policy.vocabulary, policy.config, policy.name)
         self.name = policy.name
-        self.model, self.vocabulary, self.config = policy.model, policy.vocabulary, policy.config
+        self.model, self.config = policy.model, policy.config  # what TraceRecorder reads
         self.field_size: float | None = None
 
     @property

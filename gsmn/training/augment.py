@@ -12,9 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from gsmn.model.batch import EpisodeSample
-from gsmn.task.mirror import mirror_camera, mirror_instruction, mirror_text, mirror_world, mirror_yaw
-
-__all__ = ["maybe_mirror", "mirror_camera", "mirror_episode", "mirror_instruction", "mirror_text", "mirror_world"]
+from gsmn.task.mirror import mirror_camera, mirror_instruction, mirror_world, mirror_yaw
 
 
 def mirror_episode(sample: EpisodeSample) -> EpisodeSample:
