@@ -156,7 +156,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 progress.write(record)
 
         records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers, on_episode=on_episode,
-                           record_dir=args.record, mirror_ensemble=args.mirror_ensemble)
+                           record_dir=args.record, mirror_ensemble=args.mirror_ensemble,
+                           ensemble_with=args.ensemble_with)
     seconds = time.perf_counter() - t0
     summary = summarize(records, config.task.success_radius)
     print(TABLE_HEADER)
@@ -166,7 +167,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
           f"{60 * len(records) / seconds:.1f} episodes/min")
     if args.json:
         write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers,
-                                                 args.mirror_ensemble))
+                                                 args.mirror_ensemble, args.ensemble_with))
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 
@@ -332,6 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mirror-ensemble", action="store_true",
                    help="fly a learned model as a test-time mirror ensemble: it also flies the mirror image of each "
                         "step and the two actions are averaged (twice the compute; not in the paper)")
+    p.add_argument("--ensemble-with", default=[], type=lambda s: [c for c in s.split(",") if c], metavar="CKPT,...",
+                   help="more checkpoints of the same learned system to fly beside --checkpoint as a test-time "
+                        "ensemble, their actions averaged (with --mirror-ensemble each also flies the mirror image; "
+                        "not in the paper)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_eval)
 

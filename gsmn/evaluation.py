@@ -40,11 +40,13 @@ SYSTEMS = LEARNED_SYSTEMS + TRIVIAL_SYSTEMS
 
 
 def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None,
-                mirror_ensemble: bool = False) -> Policy:
-    """The policy of a system. `mirror_ensemble` (learned systems only) flies the model as a test-time mirror
-    ensemble (`gsmn.model.policy.MirrorEnsemble`)."""
-    if mirror_ensemble and system not in LEARNED_SYSTEMS:
-        raise ValueError(f"--mirror-ensemble needs a learned system ({', '.join(LEARNED_SYSTEMS)}), not {system!r}")
+                mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = ()) -> Policy:
+    """The policy of a system. Learned systems only: `ensemble_with` names more checkpoints of the same system
+    that fly beside it as a test-time ensemble, and `mirror_ensemble` flies each model on the mirror image too
+    (`gsmn.model.policy.Ensemble`)."""
+    if (mirror_ensemble or ensemble_with) and system not in LEARNED_SYSTEMS:
+        flag = "--mirror-ensemble" if mirror_ensemble else "--ensemble-with"
+        raise ValueError(f"{flag} needs a learned system ({', '.join(LEARNED_SYSTEMS)}), not {system!r}")
     if system == "oracle":
         return ExpertPolicy(config)
     if system == "random-point":
@@ -56,15 +58,24 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
     if system in LEARNED_SYSTEMS:
         from gsmn.model.checkpoint import load_policy
 
-        folder = Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system
-        policy = load_policy(folder)
-        if policy.model.kind != system:
-            raise ValueError(f"{folder} holds a {policy.model.kind!r} model, not {system!r}")
-        if mirror_ensemble:
-            from gsmn.model.policy import MirrorEnsemble
+        folders = [Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system]
+        folders += [Path(c) for c in ensemble_with]
+        policies = []
+        for folder in folders:
+            policy = load_policy(folder)
+            if policy.model.kind != system:
+                raise ValueError(f"{folder} holds a {policy.model.kind!r} model, not {system!r}")
+            first = policies[0].config if policies else policy.config
+            for part in ("world", "drone", "camera", "task", "model"):  # what flying it depends on
+                if getattr(policy.config, part) != getattr(first, part):
+                    raise ValueError(f"{folder} has other {part} settings than {folders[0]}: an ensemble's models "
+                                     "must share them")
+            policies.append(policy)
+        if mirror_ensemble or ensemble_with:
+            from gsmn.model.policy import Ensemble, MirrorEnsemble
 
-            return MirrorEnsemble(policy)
-        return policy
+            return Ensemble(policies, mirror=mirror_ensemble) if ensemble_with else MirrorEnsemble(policies[0])
+        return policies[0]
     raise ValueError(f"unknown system {system!r}; available: {', '.join(SYSTEMS)}")
 
 
@@ -96,12 +107,13 @@ _worker: dict = {}
 
 
 def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None,
-                 threads: int | None = None, record_dir: str | None = None, mirror_ensemble: bool = False) -> None:
+                 threads: int | None = None, record_dir: str | None = None, mirror_ensemble: bool = False,
+                 ensemble_with: Sequence[str] = ()) -> None:
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    _use(make_policy(system, config, checkpoint, mirror_ensemble), config, render, record_dir)
+    _use(make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with), config, render, record_dir)
 
 
 def _use(policy: Policy, config: RunConfig, render: bool | None, record_dir: str | None = None) -> None:
@@ -128,13 +140,15 @@ def _run_one(env_id: int) -> EpisodeRecord:
 def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint: str | Path | None = None,
              workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
              render: bool | None = None, record_dir: str | Path | None = None,
-             mirror_ensemble: bool = False) -> list[EpisodeRecord]:
+             mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = ()) -> list[EpisodeRecord]:
     """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
     on or off (default: only for policies that look). `record_dir`: write each episode's ModelTrace there
-    (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`: see `make_policy`."""
+    (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`, `ensemble_with`: see
+    `make_policy`."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
     record_dir = str(record_dir) if record_dir is not None else None
-    policy = make_policy(system, config, checkpoint, mirror_ensemble)  # fails here, clearly, before any worker starts
+    ensemble_with = [str(c) for c in ensemble_with]
+    policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with)  # fails here, clearly, before any worker starts
     records = []
     if workers <= 1:
         _use(policy, config, render, record_dir)
@@ -149,7 +163,7 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
                                initargs=(system, config, checkpoint, render, 1, record_dir,  # a core each
-                                         mirror_ensemble))
+                                         mirror_ensemble, ensemble_with))
     try:
         for record in pool.map(_run_one, env_ids):
             records.append(record)
@@ -172,10 +186,12 @@ def table_row(system: str, s: Summary) -> str:
 
 
 def results_dict(system: str, checkpoint: str | None, records: list[EpisodeRecord], config: RunConfig,
-                 seconds: float, workers: int, mirror_ensemble: bool = False) -> dict:
+                 seconds: float, workers: int, mirror_ensemble: bool = False,
+                 ensemble_with: Sequence[str] = ()) -> dict:
     summary = summarize(records, config.task.success_radius)
     return {
         "system": system, "checkpoint": checkpoint, "mirror_ensemble": mirror_ensemble,
+        "ensemble_with": [str(c) for c in ensemble_with],
         "env_ids": [r.env_id for r in records], "summary": summary.to_dict(), "seconds": round(seconds, 2),
         "workers": workers,
         "machine": platform.machine(), "config": config.to_dict(),
@@ -209,6 +225,8 @@ def merge_results(parts: Sequence[dict]) -> dict:
             raise ValueError(f"different systems: {first['system']} and {part['system']}")
         if part.get("mirror_ensemble", False) != first.get("mirror_ensemble", False):
             raise ValueError("one evaluation ran as a mirror ensemble, another did not")
+        if part.get("ensemble_with", []) != first.get("ensemble_with", []):
+            raise ValueError("the evaluations flew different ensembles")
         if part["config"] != first["config"]:
             raise ValueError("the evaluations ran with different settings")
         if part["checkpoint"] != first["checkpoint"]:
@@ -223,7 +241,7 @@ def merge_results(parts: Sequence[dict]) -> dict:
     config = RunConfig.from_dict(first["config"])
     return {
         "system": first["system"], "checkpoint": first["checkpoint"],
-        "mirror_ensemble": first.get("mirror_ensemble", False),
+        "mirror_ensemble": first.get("mirror_ensemble", False), "ensemble_with": first.get("ensemble_with", []),
         "env_ids": [e for part in parts for e in part["env_ids"]],
         "summary": summarize(episodes, config.task.success_radius).to_dict(),
         "seconds": round(sum(part["seconds"] for part in parts), 2),

@@ -39,14 +39,21 @@ def compare(before: dict, after: dict) -> dict:
     }
 
 
+def flown(result: dict) -> str:
+    """What an evaluation flew: its checkpoint, the ensemble's other checkpoints, whether mirrored."""
+    names = [result["checkpoint"] or "checkpoints/gsmn", *result.get("ensemble_with", [])]
+    text = " + ".join(f"`{c}`" for c in names)
+    return text + (" (mirror ensemble)" if result.get("mirror_ensemble") else "")
+
+
 def markdown(name: str, before: dict, after: dict, c: dict, stages: tuple[dict, dict] | None) -> str:
     b, a = before["summary"], after["summary"]
     n = len(before["episodes"])
     lines = ["| episodes | | success % | landmark % | mean distance m | median distance m |",
              "|---|---|---|---|---|---|"]
-    for side, s, ckpt in (("before", b, before["checkpoint"]), ("after", a, after["checkpoint"])):
-        p, ckpt = s.get("pruned") or s, ckpt or "checkpoints/gsmn"
-        lines.append(f"| {name} ({n}) | {side}: `{ckpt}` | {s['success']:.2f} ({p['success']:.2f}) | "
+    for side, s, result in (("before", b, before), ("after", a, after)):
+        p = s.get("pruned") or s
+        lines.append(f"| {name} ({n}) | {side}: {flown(result)} | {s['success']:.2f} ({p['success']:.2f}) | "
                      f"{s['landmark_success']:.2f} ({p['landmark_success']:.2f}) | {s['mean_distance']:.2f} | "
                      f"{s['median_distance']:.2f} |")
     lines += ["", f"Fixed {c['fixed']}, broken {c['broken']} (landmark success: {c['landmark_fixed']} gained, "

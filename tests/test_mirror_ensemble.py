@@ -1,4 +1,4 @@
-"""The test-time mirror ensemble (gsmn/model/policy.py MirrorEnsemble) and the mirrored observation it flies
+"""The test-time ensembles (gsmn/model/policy.py Ensemble, MirrorEnsemble) and the mirrored observation they fly
 (gsmn/task/mirror.py), checked with the real simulator, renderer and shipped GSMN checkpoint."""
 
 from __future__ import annotations
@@ -9,11 +9,12 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from gsmn.config import preset
 from gsmn.evaluation import REPO_ROOT, make_policy, merge_results, results_dict
-from gsmn.model.checkpoint import load_policy
-from gsmn.model.policy import MirrorEnsemble
+from gsmn.model.checkpoint import load_policy, save_checkpoint
+from gsmn.model.policy import Ensemble, MirrorEnsemble
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.demo import demonstration_path
 from gsmn.task.mirror import mirror_instruction, mirror_observation, mirror_task, mirror_world
@@ -113,3 +114,65 @@ def test_mirror_ensemble_only_for_learned_systems_and_never_merged_with_a_plain_
     plain = results_dict("random-point", None, [], TINY, 0.0, 1)
     with pytest.raises(ValueError, match="mirror ensemble"):
         merge_results([{**plain, "mirror_ensemble": True, "env_ids": [1], "episodes": []}, plain])
+
+
+@pytest.fixture(scope="module")
+def second_checkpoint(tmp_path_factory):
+    """A second GSMN checkpoint that is not the shipped one: its weights with the controller's output layer scaled
+    by 0.8 (a real, different model of the same kind and settings)."""
+    policy = load_policy(CHECKPOINT)
+    with torch.no_grad():
+        policy.model.controller.perceptron.out.weight.mul_(0.8)
+    folder = tmp_path_factory.mktemp("ensemble") / "gsmn_b"
+    save_checkpoint(folder, policy.model, policy.config, policy.vocabulary)
+    return folder
+
+
+def stop_probability(policy) -> float:
+    return float(torch.sigmoid(policy.last_outputs.stop_logit[0, 0]))
+
+
+def test_ensemble_of_two_checkpoints_averages_their_actions_and_their_mirrors(flight, second_checkpoint):
+    """`--ensemble-with`: each action is the mean of the members' (yaw rate of a mirrored member negated), STOP
+    when the mean stop probability is above 0.5; with --mirror-ensemble both models also fly the mirror image."""
+    config, task, observations, _ = flight
+    F = task.world.field_size
+    pair = make_policy("gsmn", config, CHECKPOINT, ensemble_with=[second_checkpoint])
+    four = make_policy("gsmn", config, CHECKPOINT, mirror_ensemble=True, ensemble_with=[second_checkpoint])
+    assert isinstance(pair, Ensemble) and [m for _, m in pair.members] == [False, False]
+    assert [m for _, m in four.members] == [False, False, True, True]
+    a, b, a_m, b_m = (load_policy(c) for c in (CHECKPOINT, second_checkpoint, CHECKPOINT, second_checkpoint))
+    mirror = mirror_task(task)
+    for policy, t in ((pair, task), (four, task), (a, task), (b, task), (a_m, mirror), (b_m, mirror)):
+        policy.reset(t)
+    models_differ = 0.0
+    for obs in observations:
+        m = mirror_observation(obs, F)
+        e, e4 = pair.act(obs), four.act(obs)
+        p, q, pm, qm = a.act(obs), b.act(obs), a_m.act(m), b_m.act(m)
+        assert e.forward_velocity == pytest.approx((p.forward_velocity + q.forward_velocity) / 2, abs=1e-4)
+        assert e.yaw_rate == pytest.approx((p.yaw_rate + q.yaw_rate) / 2, abs=1e-4)
+        assert e.stop == ((stop_probability(a) + stop_probability(b)) / 2 > 0.5)
+        assert e4.forward_velocity == pytest.approx(
+            (p.forward_velocity + q.forward_velocity + pm.forward_velocity + qm.forward_velocity) / 4, abs=1e-4)
+        assert e4.yaw_rate == pytest.approx((p.yaw_rate + q.yaw_rate - pm.yaw_rate - qm.yaw_rate) / 4, abs=1e-4)
+        assert e4.stop == (sum(map(stop_probability, (a, b, a_m, b_m))) / 4 > 0.5)
+        models_differ = max(models_differ, abs(p.yaw_rate - q.yaw_rate), abs(p.forward_velocity - q.forward_velocity))
+    assert models_differ > 1e-3  # the second model is another function, so the pair is not the shipped model
+    assert pair.last_outputs is pair.policy.last_outputs
+
+
+def test_ensemble_with_refuses_other_kinds_and_is_recorded(tmp_path, second_checkpoint):
+    with pytest.raises(ValueError, match="learned system"):
+        make_policy("oracle", TINY, ensemble_with=[CHECKPOINT])
+    with pytest.raises(ValueError, match="gs-fpv"):
+        make_policy("gsmn", TINY, CHECKPOINT, ensemble_with=[REPO_ROOT / "checkpoints" / "gs-fpv"])
+    out = tmp_path / "pair.json"
+    run = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "gsmn", "--env-ids", "85",
+                          "--ensemble-with", str(second_checkpoint), "--json", str(out)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    d = json.loads(out.read_text())
+    assert d["ensemble_with"] == [str(second_checkpoint)] and d["mirror_ensemble"] is False
+    plain = {**results_dict("gsmn", None, [], TINY, 0.0, 1), "env_ids": [2]}
+    with pytest.raises(ValueError, match="different ensembles"):
+        merge_results([{**plain, "ensemble_with": ["x"], "env_ids": [1]}, plain])

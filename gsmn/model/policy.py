@@ -10,6 +10,8 @@ sigmoid(stop_logit) > 0.5.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from gsmn.config import RunConfig
@@ -87,25 +89,34 @@ class ModelPolicy:
 GSMNPolicy = ModelPolicy
 
 
-class MirrorEnsemble:
-    """A test-time mirror ensemble of one model (not in the paper; docs/design.md, "Mirror ensemble").
+class Ensemble:
+    """A test-time ensemble of models of one kind (not in the paper; docs/design.md, "Test-time ensembles").
 
-    Two copies of the model's runtime state fly each episode side by side: one on what the drone observes, one
-    on the east-west mirror image of it (`gsmn.task.mirror`: the image flipped, the pose and camera reflected,
-    "left" and "right" swapped in the instruction), each with its own semantic map. Their actions are averaged,
-    the mirrored copy's yaw rate negated back: v = (v + v') / 2, omega = (omega - omega') / 2, STOP when the mean
-    of the two stop probabilities is above 0.5. A model that is not perfectly mirror-symmetric (none is) makes
-    errors in the two copies that partly cancel. Twice the model's compute per step.
+    Each member is a `ModelPolicy` with its own runtime state (its own semantic map) flying the same episode.
+    With `mirror`, every model flies a second time on the east-west mirror image of what the drone observes
+    (`gsmn.task.mirror`: the image flipped, the pose and camera reflected, "left" and "right" swapped in the
+    instruction). The members' actions are averaged, a mirrored member's yaw rate negated back: v = mean v_i,
+    omega = mean s_i omega_i (s_i = -1 mirrored, +1 not), STOP when the mean of the stop probabilities is above
+    0.5. Members that are not the same function (weights from other iterations, or a model that is not perfectly
+    mirror-symmetric, which none is) make errors that partly cancel. The compute per step is the members'.
 
-    `last_outputs` and `counterfactual` are the unmirrored copy's (what the dashboard shows)."""
+    `last_outputs` and `counterfactual` are the first model's unmirrored copy's (what the dashboard shows)."""
 
     needs_images = True
 
-    def __init__(self, policy: ModelPolicy):
-        self.policy = policy
-        self.mirrored = ModelPolicy(policy.model, policy.vocabulary, policy.config, policy.name)
-        self.name = policy.name
-        self.model, self.config = policy.model, policy.config  # what TraceRecorder reads
+    def __init__(self, policies: Sequence[ModelPolicy], mirror: bool = False):
+        if not policies:
+            raise ValueError("an ensemble needs at least one model")
+        kinds = {p.model.kind for p in policies}
+        if len(kinds) > 1:
+            raise ValueError(f"an ensemble's models must be of one kind, not {sorted(kinds)}")
+        self.policy = policies[0]
+        self.members: list[tuple[ModelPolicy, bool]] = [(p, False) for p in policies]
+        if mirror:
+            self.members += [(ModelPolicy(p.model, p.vocabulary, p.config, p.name), True) for p in policies]
+        self.mirror = mirror
+        self.name = self.policy.name
+        self.model, self.config = self.policy.model, self.policy.config  # what TraceRecorder reads
         self.field_size: float | None = None
 
     @property
@@ -113,19 +124,31 @@ class MirrorEnsemble:
         return self.policy.last_outputs
 
     def reset(self, task: Task) -> None:
-        self.policy.reset(task)
-        self.mirrored.reset(mirror_task(task))
+        mirrored = mirror_task(task) if self.mirror else None
+        for policy, m in self.members:
+            policy.reset(mirrored if m else task)
         self.field_size = task.world.field_size
 
     def act(self, obs: Observation) -> PolicyAction:
         if self.field_size is None:
             raise RuntimeError("call reset(task) before act")
-        a = self.policy.act(obs)
-        b = self.mirrored.act(mirror_observation(obs, self.field_size))
-        p_stop = (torch.sigmoid(self.policy.last_outputs.stop_logit[0, 0])
-                  + torch.sigmoid(self.mirrored.last_outputs.stop_logit[0, 0])) / 2
-        return PolicyAction(forward_velocity=(a.forward_velocity + b.forward_velocity) / 2,
-                            yaw_rate=(a.yaw_rate - b.yaw_rate) / 2, stop=bool(p_stop > 0.5))
+        mirrored = mirror_observation(obs, self.field_size) if self.mirror else None
+        v = omega = p_stop = 0.0
+        for policy, m in self.members:
+            a = policy.act(mirrored if m else obs)
+            v += a.forward_velocity
+            omega += -a.yaw_rate if m else a.yaw_rate
+            p_stop += float(torch.sigmoid(policy.last_outputs.stop_logit[0, 0]))
+        n = len(self.members)
+        return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop / n > 0.5)
 
     def counterfactual(self, text: str) -> GroundingOutputs:
         return self.policy.counterfactual(text)
+
+
+class MirrorEnsemble(Ensemble):
+    """One model flown as a test-time mirror ensemble: on the observation and on its mirror image, the two actions
+    averaged (v = (v + v') / 2, omega = (omega - omega') / 2)."""
+
+    def __init__(self, policy: ModelPolicy):
+        super().__init__([policy], mirror=True)
