@@ -148,7 +148,8 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
     checkpoint = str(checkpoint) if checkpoint is not None else None
     record_dir = str(record_dir) if record_dir is not None else None
     ensemble_with = [str(c) for c in ensemble_with]
-    policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with)  # fails here, clearly, before any worker starts
+    # fails here, clearly, before any worker starts
+    policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with)
     records = []
     if workers <= 1:
         _use(policy, config, render, record_dir)

@@ -169,7 +169,8 @@ def test_ensemble_with_refuses_other_kinds_and_is_recorded(tmp_path, second_chec
         make_policy("gsmn", TINY, CHECKPOINT, ensemble_with=[REPO_ROOT / "checkpoints" / "gs-fpv"])
     out = tmp_path / "pair.json"
     run = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "gsmn", "--env-ids", "85",
-                          "--ensemble-with", str(second_checkpoint), "--json", str(out)], capture_output=True, text=True)
+                          "--ensemble-with", str(second_checkpoint), "--json", str(out)],
+                         capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     d = json.loads(out.read_text())
     assert d["ensemble_with"] == [str(second_checkpoint)] and d["mirror_ensemble"] is False
