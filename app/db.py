@@ -20,7 +20,7 @@ from typing import Any
 QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
 ACTIVE = (QUEUED, RUNNING)
 STATUSES = (QUEUED, RUNNING, FINISHED, FAILED, CANCELLED)
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: evaluations.mirror_ensemble (a version-1 record gains it, as 0, on opening)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -43,7 +43,8 @@ CREATE TABLE IF NOT EXISTS evaluations (
     total INTEGER NOT NULL,
     summary TEXT,                   -- JSON: gsmn.task.metrics.Summary.to_dict()
     error TEXT,
-    cancel_requested INTEGER NOT NULL DEFAULT 0
+    cancel_requested INTEGER NOT NULL DEFAULT 0,
+    mirror_ensemble INTEGER NOT NULL DEFAULT 0  -- flown as a test-time mirror ensemble (gsmn eval --mirror-ensemble)
 );
 CREATE TABLE IF NOT EXISTS episodes (
     evaluation_id INTEGER NOT NULL REFERENCES evaluations(id),
@@ -110,6 +111,7 @@ class Evaluation:
     summary: dict | None
     error: str | None
     cancel_requested: bool
+    mirror_ensemble: bool = False  # flown as a test-time mirror ensemble (schema 2)
 
 
 @dataclass(frozen=True)
@@ -155,7 +157,7 @@ class Run:
 
 
 _JSON = {"env_ids", "command", "summary", "attribution", "settings", "progress", "metrics"}
-_BOOL = {"ambiguous", "success", "landmark_success", "stopped", "cancel_requested"}
+_BOOL = {"ambiguous", "success", "landmark_success", "stopped", "cancel_requested", "mirror_ensemble"}
 
 
 def _decode(cls: type, row: sqlite3.Row) -> Any:
@@ -195,6 +197,8 @@ class Database:
         if version > SCHEMA_VERSION:
             raise RuntimeError(f"{self.path} was written by a newer version (schema {version}); use another "
                                "--data-dir")
+        if version == 1:  # the one column version 2 added; every row recorded before it stays as it was
+            self._db.execute("ALTER TABLE evaluations ADD COLUMN mirror_ensemble INTEGER NOT NULL DEFAULT 0")
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
 
@@ -228,11 +232,11 @@ class Database:
     # -- evaluations -------------------------------------------------------------------------------------------
     def add_evaluation(self, *, system: str, checkpoint: str | None, env_ids: list[int], label: str,
                        source: str = "dashboard", status: str = QUEUED, baseline_id: int | None = None,
-                       run_id: int | None = None) -> int:
+                       run_id: int | None = None, mirror_ensemble: bool = False) -> int:
         return self._insert("evaluations", {
             "status": status, "created": time.time(), "system": system, "checkpoint": checkpoint,
             "env_ids": [int(e) for e in env_ids], "label": label, "baseline_id": baseline_id, "run_id": run_id,
-            "source": source, "total": len(env_ids)})
+            "source": source, "total": len(env_ids), "mirror_ensemble": mirror_ensemble})
 
     def update_evaluation(self, evaluation_id: int, **values: Any) -> None:
         self._update("evaluations", evaluation_id, values)

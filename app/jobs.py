@@ -242,12 +242,16 @@ class JobManager:
     # -- evaluations ---------------------------------------------------------------------------------------------
     def start_evaluation(self, checkpoint: str | None = None, system: str | None = None, split: str | None = None,
                          episodes: int | None = None, env_ids: list[int] | None = None,
-                         baseline_id: int | None = None, run_id: int | None = None, workers: int = 1) -> Evaluation:
+                         baseline_id: int | None = None, run_id: int | None = None, workers: int = 1,
+                         mirror_ensemble: bool = False) -> Evaluation:
         """Launch `gsmn eval` on a split (its first `episodes`), a list of ids, or the ids of `baseline_id`, in
-        `workers` processes of one torch thread each."""
+        `workers` processes of one torch thread each; `mirror_ensemble` flies the model as a test-time mirror
+        ensemble (`--mirror-ensemble`)."""
         from gsmn.world.spec import SPLITS, split_env_ids
 
         system = system or "gsmn"
+        if system == "oracle" and mirror_ensemble:
+            raise RunnerError("the expert has no mirror ensemble: it is a learned model's option")
         if system == "oracle":
             ckpt = None
         else:
@@ -284,10 +288,13 @@ class JobManager:
             raise RunnerError("environment ids repeat")
         if not 1 <= workers <= 16:
             raise RunnerError(f"workers must be between 1 and 16, got {workers}")
+        if mirror_ensemble:
+            label += ", mirror ensemble"
         with self._lock:
             self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
             eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,
-                                         label=label, baseline_id=baseline_id, run_id=run_id)
+                                         label=label, baseline_id=baseline_id, run_id=run_id,
+                                         mirror_ensemble=mirror_ensemble)
             folder = self.root / "evaluations" / f"{eid:04d}"
             folder.mkdir(parents=True, exist_ok=True)
             self.db.update_evaluation(eid, folder=str(folder))
@@ -296,7 +303,8 @@ class JobManager:
                        *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
                        "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
                        "--record", str(folder / "episodes"), "--progress", str(folder / "progress.jsonl"),
-                       "--json", str(folder / "results.json"), *config_args(self.config)]
+                       "--json", str(folder / "results.json"), *config_args(self.config),
+                       *(["--mirror-ensemble"] if mirror_ensemble else [])]
             self._launch("evaluation", eid, folder, command)
         return self.db.evaluation(eid)
 
@@ -322,8 +330,12 @@ class JobManager:
         except (ValueError, KeyError, TypeError) as e:
             raise RunnerError(f"{path} is not a `gsmn eval --json` file: {type(e).__name__}: {e}") from e
         ids = [int(ep["env_id"]) for ep in episodes]
+        mirror, others = bool(results.get("mirror_ensemble", False)), results.get("ensemble_with") or []
+        label = f"imported from {path.name}" + (", mirror ensemble" if mirror else "")
+        if others:  # a replay flies the first checkpoint alone (mirrored if it was), so it need not reproduce
+            label += f", with {len(others)} more checkpoint{'s' if len(others) > 1 else ''}"
         eid = self.db.add_evaluation(system=system, checkpoint=results.get("checkpoint"), env_ids=ids,
-                                     label=f"imported from {path.name}", source="import", status=FINISHED)
+                                     label=label, source="import", status=FINISHED, mirror_ensemble=mirror)
         for position, ep in enumerate(episodes):
             self._record_episode(eid, position, ep, config, results.get("checkpoint") if system != "oracle" else None,
                                  Path(record_dir) if record_dir else None)

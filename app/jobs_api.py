@@ -36,6 +36,8 @@ class EvaluationRequest(_Strict):
     run_id: int | None = Field(None, ge=1, description="evaluate this finished fine-tuning run's checkpoint")
     workers: int = Field(1, ge=1, le=16, description="worker processes (one core each; 1 leaves the live view "
                          "its share)")
+    mirror_ensemble: bool = Field(False, description="fly the model as a test-time mirror ensemble (it also flies "
+                                  "the mirror image of each step and the two actions are averaged; not in the paper)")
 
 
 class ImportRequest(_Strict):
@@ -57,6 +59,7 @@ class EvaluationModel(BaseModel):
     baseline_id: int | None
     run_id: int | None
     source: Literal["dashboard", "import"]
+    mirror_ensemble: bool = Field(description="flown as a test-time mirror ensemble")
     done: int = Field(description="episodes finished")
     total: int
     fraction: float
@@ -146,7 +149,8 @@ def clean(value):
 def evaluation_model(jobs: JobManager, e: Evaluation) -> EvaluationModel:
     return EvaluationModel(id=e.id, status=e.status, label=e.label, system=e.system, checkpoint=e.checkpoint,
                            env_ids=e.env_ids, baseline_id=e.baseline_id, run_id=e.run_id, source=e.source,
-                           done=e.done, total=e.total, fraction=e.done / max(1, e.total), summary=clean(e.summary),
+                           mirror_ensemble=e.mirror_ensemble, done=e.done, total=e.total,
+                           fraction=e.done / max(1, e.total), summary=clean(e.summary),
                            stages=jobs.db.stage_counts(e.id), error=e.error, created=e.created, started=e.started,
                            finished=e.finished)
 
@@ -175,7 +179,7 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
                 raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
             checkpoint = run.checkpoint
         e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
-                                  request.baseline_id, request.run_id, request.workers)
+                                  request.baseline_id, request.run_id, request.workers, request.mirror_ensemble)
         return evaluation_model(jobs, e)
 
     @app.get("/api/evaluations", response_model=list[EvaluationModel], summary="Every evaluation recorded")
@@ -247,9 +251,10 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
 
 
 def replay_policy(e: Evaluation) -> tuple[str, str | None]:
-    """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint."""
+    """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint (as a mirror
+    ensemble if the evaluation flew one)."""
     if e.system == "oracle":
         return "expert", None
     if not e.checkpoint:
         raise RunnerError(f"evaluation {e.id} ({e.system}) names no checkpoint to fly again")
-    return "model", e.checkpoint
+    return ("mirror" if e.mirror_ensemble else "model"), e.checkpoint

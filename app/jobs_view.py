@@ -84,6 +84,10 @@ class JobsView(RunnerListener):
                 self.eval_episodes = gui.add_number("Episodes", 30, min=1, max=5000, step=1,
                                                     hint="the split's first this many environments")
                 self.eval_ids = gui.add_text("Or env ids", "", hint="'70:80' or '70,73,81': instead of the split")
+                self.eval_mirror = gui.add_checkbox("As mirror ensemble", False,
+                                                    hint="the model also flies the mirror image of each step and the "
+                                                         "two actions are averaged (twice the compute; not in the "
+                                                         "paper); replays fly the same way")
                 self.eval_buttons = gui.add_button_group("Evaluation", ("Evaluate", "Cancel"))
                 self.eval_progress = gui.add_progress_bar(0.0, visible=False)
                 self.eval_status = gui.add_markdown("Evaluations run in their own process; their episodes and "
@@ -222,7 +226,8 @@ class JobsView(RunnerListener):
         try:
             ids = parse_env_ids(self.eval_ids.value.strip()) if self.eval_ids.value.strip() else None
             e = self.jobs.start_evaluation(checkpoint, system, None if ids else self.eval_split.value,
-                                           None if ids else int(self.eval_episodes.value), ids)
+                                           None if ids else int(self.eval_episodes.value), ids,
+                                           mirror_ensemble=bool(self.eval_mirror.value) and system != "oracle")
         except (RunnerError, ValueError) as err:
             self.eval_status.content = error_html(f"**Not started:** {html.escape(str(err))}")
             return
@@ -384,8 +389,10 @@ class JobsView(RunnerListener):
         if baseline is None:
             self.run_note.content = error_html("No evaluation to compare with: evaluate a checkpoint first.")
             return
-        try:
-            e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=baseline, run_id=run.id)
+        before = self.jobs.db.evaluation(baseline)
+        try:  # flown the way the evaluation it reruns was (plain or as a mirror ensemble)
+            e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=baseline, run_id=run.id,
+                                           mirror_ensemble=bool(before and before.mirror_ensemble))
         except RunnerError as err:
             self.run_note.content = error_html(f"**Not started:** {html.escape(str(err))}")
             return

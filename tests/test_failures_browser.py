@@ -152,3 +152,17 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     after = dashboard.jobs.db.evaluation(int(compare["after"]))
     assert after.status == "finished" and after.baseline_id == 1 and after.run_id == 1
     assert "Evaluation 1 → 2" in compare["text"] and str(first.env_id) in compare["text"]
+
+    # an evaluation flown as a mirror ensemble, from the same form
+    page.get_by_role("tab", name="Failures").click()
+    field(page, "As mirror ensemble").check(force=True)
+    ids = field(page, "Or env ids")
+    ids.fill("70")
+    ids.press("Enter")
+    page.get_by_role("button", name="Evaluate", exact=True).click()
+    page.get_by_text(re.compile(r"1 chosen environments, mirror ensemble")).first.wait_for()
+    mirrored = max(e.id for e in dashboard.jobs.db.evaluations())
+    wait_js(page, EVALUATION, lambda v: v and v["id"] == str(mirrored) and v["status"] == "finished", timeout=180,
+            what="the mirror-ensemble evaluation to finish in the page")
+    e = dashboard.jobs.db.evaluation(mirrored)
+    assert e.mirror_ensemble and e.env_ids == [70] and "--mirror-ensemble" in e.command

@@ -7,6 +7,7 @@ mid-run that re-attaches to the run and still lists everything."""
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import signal
@@ -181,6 +182,35 @@ def test_a_replay_flies_the_episode_again_in_the_live_view(serve, evaluation):
     assert client.get(f"/api/episodes/{episode['id']}/steps/3/maps/goal.png").status_code == 200  # with its maps
     missing = client.post(f"/api/evaluations/{evaluation['id']}/replay", json={"env_id": 5})
     assert missing.status_code == 404 and "no episode in environment 5" in missing.json()["detail"]
+
+
+def test_a_mirror_ensemble_evaluation_is_recorded_and_replayed_as_one(serve, evaluation):
+    """Evaluated as a mirror ensemble, the same episode ends elsewhere than the plain model's, the record and the
+    results file say how it was flown, and its replay flies the ensemble again, to the same end."""
+    client = serve.client
+    created = client.post("/api/evaluations", json={"env_ids": [ENV_IDS[0]], "mirror_ensemble": True})
+    assert created.status_code == 201, created.text
+    mirrored = settled(client, f"/api/evaluations/{created.json()['id']}")
+    assert mirrored["status"] == "finished" and mirrored["mirror_ensemble"] is True, mirrored
+    assert "mirror ensemble" in mirrored["label"] and evaluation["mirror_ensemble"] is False
+    folder = serve.data_dir / "evaluations" / f"{mirrored['id']:04d}"
+    assert json.loads((folder / "results.json").read_text())["mirror_ensemble"] is True
+    (record,) = client.get(f"/api/evaluations/{mirrored['id']}/episodes").json()
+    plain = client.get(f"/api/evaluations/{evaluation['id']}/episodes").json()[0]
+    assert plain["env_id"] == record["env_id"]
+    assert (abs(plain["final_x"] - record["final_x"]) + abs(plain["final_y"] - record["final_y"]) > 1e-3
+            or plain["steps"] != record["steps"])  # the ensemble is not the plain model
+    replay = client.post(f"/api/evaluations/{mirrored['id']}/replay", json={"env_id": record["env_id"]})
+    assert replay.status_code == 201, replay.text
+    episode = settled(client, f"/api/episodes/{replay.json()['episode_id']}", timeout=120)
+    assert episode["status"] == "finished" and episode["policy"] == "mirror"
+    assert episode["result"]["steps"] == record["steps"]
+    assert abs(episode["result"]["final_x"] - record["final_x"]) < 1e-3
+    assert abs(episode["result"]["final_y"] - record["final_y"]) < 1e-3
+    loaded = client.post("/api/evaluations/import", json={"path": str(folder / "results.json")}).json()
+    assert loaded["mirror_ensemble"] is True and "mirror ensemble" in loaded["label"]
+    expert = client.post("/api/evaluations", json={"system": "oracle", "env_ids": [70], "mirror_ensemble": True})
+    assert expert.status_code == 422 and "mirror ensemble" in expert.json()["detail"]
 
 
 def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve, evaluation):

@@ -64,6 +64,34 @@ def test_the_record_keeps_evaluations_episodes_and_runs_across_reopening(tmp_pat
         assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
+def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows(tmp_path):
+    """A record written before evaluations had `mirror_ensemble` (schema 1) opens with every row as it was, marked
+    as flown plainly, and takes mirror-ensemble evaluations from then on."""
+    import app.db
+
+    line = [x for x in app.db.SCHEMA.splitlines() if x.strip().startswith("mirror_ensemble")]
+    assert len(line) == 1
+    old_schema = app.db.SCHEMA.replace("cancel_requested INTEGER NOT NULL DEFAULT 0,\n" + line[0] + "\n",
+                                       "cancel_requested INTEGER NOT NULL DEFAULT 0\n", 1)
+    assert "mirror_ensemble" not in old_schema
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as old:
+        old.executescript(old_schema)
+        old.execute("INSERT INTO evaluations (status, created, system, checkpoint, env_ids, label, source, total) "
+                    "VALUES ('finished', 1.0, 'gsmn', '/c', '[70, 71]', 'before the column', 'dashboard', 2)")
+        old.execute("PRAGMA user_version=1")
+    old.close()
+    db = Database(path)
+    (e,) = db.evaluations()
+    assert (e.label, e.env_ids, e.status, e.mirror_ensemble) == ("before the column", [70, 71], "finished", False)
+    new = db.add_evaluation(system="gsmn", checkpoint="/c", env_ids=[72], label="mirrored", mirror_ensemble=True)
+    db.close()
+    db = Database(path)
+    assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 2
+    db.close()
+
+
 def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
     assert run_settings("tiny") == RUN_PRESETS["tiny"]
     s = run_settings("paper", iterations=3, learning_rate=1e-4, beta0=None)
