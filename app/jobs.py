@@ -65,6 +65,7 @@ class RunSettings:
     workers: int  # rollout worker processes
     threads: int  # torch threads of the training process
     expert_data: str | None = None  # an expert episode store to start from; None: collect one in the data folder
+    mirror: float = 0.0  # share of training episodes mirrored east-west (train.mirror; not in the paper)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -100,6 +101,8 @@ def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
                           f"(dataset_size, {s.dataset_size})")
     if not 0 <= s.beta0 <= 1:
         raise RunnerError(f"beta0 must be in [0, 1], got {s.beta0}")
+    if not 0 <= s.mirror <= 1:
+        raise RunnerError(f"mirror (the share of episodes mirrored) must be in [0, 1], got {s.mirror}")
     if not s.learning_rate > 0:
         raise RunnerError(f"learning_rate must be positive, got {s.learning_rate}")
     if s.horizon is not None and s.horizon < 1:
@@ -123,7 +126,8 @@ def run_config(config: RunConfig, s: RunSettings) -> RunConfig:
     """The server's configuration with a run's settings."""
     overrides = {"dagger.iterations": s.iterations, "dagger.rollouts_per_iteration": s.rollouts_per_iteration,
                  "dagger.dataset_size": s.dataset_size, "dagger.beta0": s.beta0, "dagger.workers": s.workers,
-                 "train.learning_rate": s.learning_rate, "train.batch_size": s.batch_size, "train.threads": s.threads}
+                 "train.learning_rate": s.learning_rate, "train.batch_size": s.batch_size, "train.threads": s.threads,
+                 "train.mirror": s.mirror}
     if s.horizon is not None:
         overrides["task.horizon"] = s.horizon
     try:

@@ -110,6 +110,8 @@ class RunRequest(_Strict):
     batch_size: int | None = Field(None, ge=1, le=64)
     workers: int | None = Field(None, ge=1, le=16)
     threads: int | None = Field(None, ge=1, le=64)
+    mirror: float | None = Field(None, ge=0, le=1, description="share of training episodes mirrored east-west "
+                                 "(left and right swapped; not in the paper); omitted: the preset's, 0")
     expert_data: str | None = Field(None, description="an expert episode store (gsmn collect) to start the dataset "
                                     "from; omitted: collected in the data folder")
     checkpoint: str | None = Field(None, description="start from this checkpoint; omitted: the server's default")

@@ -120,6 +120,10 @@ class JobsView(RunnerListener):
                 self.run_beta0 = gui.add_number("beta0", s.beta0, min=0.0, max=1.0, step=0.01,
                                                 hint="the expert acts with probability beta0^i in iteration i")
                 self.run_lr = gui.add_number("Learning rate", s.learning_rate, min=1e-6, max=1.0, step=1e-5)
+                self.run_mirror = gui.add_number("Mirrored share", s.mirror, min=0.0, max=1.0, step=0.05,
+                                                 hint="the share of training episodes mirrored east-west, left and "
+                                                      "right swapped (not in the paper; the shipped GSMN's last "
+                                                      "iterations used 0.5)")
                 self.run_envs = gui.add_dropdown("Environments", (ENV_TRAIN,))
                 self.run_buttons = gui.add_button_group("Run", ("Launch", "Cancel"))
                 self.run_progress = gui.add_progress_bar(0.0, visible=False)
@@ -213,7 +217,7 @@ class JobsView(RunnerListener):
             s = RUN_PRESETS[self.run_preset.value]
             self.run_iterations.value, self.run_nd.value, self.run_m.value = (s.iterations, s.rollouts_per_iteration,
                                                                               s.dataset_size)
-            self.run_beta0.value, self.run_lr.value = s.beta0, s.learning_rate
+            self.run_beta0.value, self.run_lr.value, self.run_mirror.value = s.beta0, s.learning_rate, s.mirror
         elif kind == "run":
             self._launch() if event[1] == "Launch" else self._cancel_run()
         elif kind == "run_action":
@@ -351,7 +355,8 @@ class JobsView(RunnerListener):
         try:
             settings = run_settings(self.run_preset.value, iterations=int(self.run_iterations.value),
                                     rollouts_per_iteration=int(self.run_nd.value), dataset_size=int(self.run_m.value),
-                                    beta0=float(self.run_beta0.value), learning_rate=float(self.run_lr.value))
+                                    beta0=float(self.run_beta0.value), learning_rate=float(self.run_lr.value),
+                                    mirror=float(self.run_mirror.value))
             r = self.jobs.start_run(settings, checkpoint, env_ids or None,
                                     self.evaluation_id if env_ids else None)
         except (RunnerError, ValueError) as err:

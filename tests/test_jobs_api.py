@@ -218,9 +218,10 @@ def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve,
 
     client = serve.client
     before = tree_hash(serve.checkpoint)
-    created = client.post("/api/runs", json={"preset": "tiny", "evaluation_id": evaluation["id"]})
+    created = client.post("/api/runs", json={"preset": "tiny", "evaluation_id": evaluation["id"], "mirror": 0.5})
     assert created.status_code == 201, created.text
     run = created.json()
+    assert run["settings"]["mirror"] == 0.5  # half the training episodes mirrored (train.mirror)
     failures = sorted(e["env_id"] for e in client.get(f"/api/evaluations/{evaluation['id']}/episodes",
                                                         params={"failed_only": True}).json())
     assert run["env_ids"] == failures and run["settings"]["iterations"] == 2
@@ -235,6 +236,7 @@ def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve,
     assert [m["iteration"] for m in done["metrics"]] == [1, 2] and "loss" in done["metrics"][0]["train"]
     model, config, _, meta = load_checkpoint(done["checkpoint"])
     assert model.kind == "gsmn" and config.dagger.iterations == 2 and meta["metrics"]["iteration"] == 2
+    assert config.train.mirror == 0.5  # the setting reached the training process
     assert tree_hash(serve.checkpoint) == before, "the run must not touch the checkpoint it started from"
 
     # it is a checkpoint to switch to: listed, and an episode flies with it

@@ -98,13 +98,16 @@ def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
     assert (s.iterations, s.learning_rate, s.beta0, s.dataset_size) == (3, 1e-4, 0.92, 500)
     for kwargs, words in (({"rollouts_per_iteration": 5, "dataset_size": 4}, "cannot exceed M"),
                           ({"iterations": 0}, "iterations must be at least 1"), ({"beta0": 1.5}, "beta0"),
-                          ({"learning_rate": 0.0}, "learning_rate"), ({"colour": 1}, "unknown run setting")):
+                          ({"learning_rate": 0.0}, "learning_rate"), ({"colour": 1}, "unknown run setting"),
+                          ({"mirror": 1.5}, "mirror")):
         with pytest.raises(RunnerError, match=words):
             run_settings("tiny", **kwargs)
     with pytest.raises(RunnerError, match="unknown run preset"):
         run_settings("huge")
     config = run_config(with_overrides(preset("tiny"), {"task.horizon": "60"}), run_settings("tiny", beta0=0.3))
     assert (config.dagger.iterations, config.dagger.beta0, config.task.horizon, config.train.threads) == (2, 0.3, 30, 1)
+    assert config.train.mirror == 0.0
+    assert run_config(preset("tiny"), run_settings("tiny", mirror=0.5)).train.mirror == 0.5
     assert not config.camera.shadows
 
 
