@@ -90,7 +90,8 @@ GSMNPolicy = ModelPolicy
 
 
 class Ensemble:
-    """A test-time ensemble of models of one kind (not in the paper; docs/design.md, "Test-time ensembles").
+    """A test-time ensemble of models of one kind (not in the paper; docs/design.md, "Mirror ensemble" and
+    "Test-time ensembles of checkpoints").
 
     Each member is a `ModelPolicy` with its own runtime state (its own semantic map) flying the same episode.
     With `mirror`, every model flies a second time on the east-west mirror image of what the drone observes
