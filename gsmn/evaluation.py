@@ -60,17 +60,14 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
 
         folders = [Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system]
         folders += [Path(c) for c in ensemble_with]
-        policies = []
-        for folder in folders:
-            policy = load_policy(folder)
+        policies = [load_policy(folder) for folder in folders]
+        for folder, policy in zip(folders, policies, strict=True):
             if policy.model.kind != system:
                 raise ValueError(f"{folder} holds a {policy.model.kind!r} model, not {system!r}")
-            first = policies[0].config if policies else policy.config
             for part in ("world", "drone", "camera", "task", "model"):  # what flying it depends on
-                if getattr(policy.config, part) != getattr(first, part):
+                if getattr(policy.config, part) != getattr(policies[0].config, part):
                     raise ValueError(f"{folder} has other {part} settings than {folders[0]}: an ensemble's models "
                                      "must share them")
-            policies.append(policy)
         if mirror_ensemble or ensemble_with:
             from gsmn.model.policy import Ensemble, MirrorEnsemble
 
