@@ -58,6 +58,17 @@ def _tally(found: list[Attribution | None]) -> tuple[dict[str, int], int]:
     return count_stages(found), sum(a is None for a in found)
 
 
+def ambiguous_counts(results: dict, attributions: list[Attribution | None]) -> dict[str, int]:
+    """How many of each stage's failures had an ambiguous instruction (its noun phrase names several landmarks of
+    the world, so only one of them is the goal and the instruction cannot say which)."""
+    failed = [r for r in results["episodes"] if not r["success"]]
+    out: dict[str, int] = {}
+    for record, a in zip(failed, attributions, strict=True):
+        if a is not None and a.stage is not None and record.get("ambiguous"):
+            out[a.stage] = out.get(a.stage, 0) + 1
+    return out
+
+
 def control_misses(attributions: list[Attribution | None]) -> dict[str, int]:
     """The control failures by how the drone missed the goal peak: stopped short, overshot, beside, never stopped
     ("direction unknown" only for episodes recorded without their final heading)."""
@@ -90,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
     print(f"{failures} failures of {len(results['episodes'])} episodes "
           f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
+    ambiguous = ambiguous_counts(results, found)
     for stage in reported_stages(counts):
-        print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}")
+        print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}  ({ambiguous.get(stage, 0)} with an ambiguous instruction)")
         if stage == "control" and counts[stage]:
             for kind, n in control_misses(found).items():
                 print(f"    {kind:<13} {n}")

@@ -217,6 +217,14 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
                             text=True)
     assert counts.returncode == 0, counts.stderr
     assert counts.stdout.startswith("1 failures of 1 episodes") and f"{STAGE_TITLES[a.stage]:<15} 1" in counts.stdout
+    n_ambiguous = 1 if record.ambiguous else 0
+    assert f"{STAGE_TITLES[a.stage]:<15} 1  ({n_ambiguous} with an ambiguous instruction)" in counts.stdout
+    flipped = json.loads(results.read_text())  # the same failure with the other ambiguity is counted the other way
+    flipped["episodes"][0]["ambiguous"] = not record.ambiguous
+    (tmp_path / "flipped.json").write_text(json.dumps(flipped))
+    again_counts = subprocess.run([sys.executable, str(script), str(tmp_path / "flipped.json"), str(tmp_path / "rec")],
+                                  capture_output=True, text=True)
+    assert f"({1 - n_ambiguous} with an ambiguous instruction)" in again_counts.stdout, again_counts.stderr
     inside = all(0 <= v <= config.world.field_size for v in (record.final_x, record.final_y))
     assert f"ended outside the field in {0 if inside else 1} episodes" in counts.stdout
 
