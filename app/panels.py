@@ -43,9 +43,23 @@ def status_line(episode: Episode) -> str:
              "cancelled": "stopped early", "failed": "failed"}[episode.status]
     text = (f"**Episode {episode.id}** ({state}): {flying} in environment {episode.env_id}, "
             f"\"{html.escape(episode.instruction)}\".")
+    note = ambiguity_note(episode)
+    if note:
+        text += " " + note
     if episode.error:
         text += f" Error: {html.escape(episode.error)}"
     return text
+
+
+def ambiguity_note(episode: Episode) -> str:
+    """For an instruction whose noun phrase names several landmarks of the world: how many, and that only the
+    ringed one is the goal (the instruction cannot say which; flying to another of the same name fails)."""
+    instruction = episode.task.instruction
+    if not instruction.ambiguous:
+        return ""
+    n = len(episode.task.world.landmarks_named(instruction.noun_phrase))
+    return (f"*Ambiguous: {n} landmarks here are called \"{html.escape(instruction.noun_phrase)}\"; the goal is at "
+            f"the ringed one, and ending at another of them counts as a failure.*")
 
 
 def result_markdown(episode: Episode) -> str:
@@ -60,6 +74,7 @@ def result_markdown(episode: Episode) -> str:
     how = "said STOP" if r.stopped else f"ran out of steps (horizon {episode.horizon})"
     region = "inside" if r.landmark_success else "outside"
     stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
+    ambiguous = f"| instruction | {ambiguity_note(episode)} |\n" if instruction.ambiguous else ""
     return (f"### <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
@@ -67,6 +82,7 @@ def result_markdown(episode: Episode) -> str:
             f"| distance to the {html.escape(instruction.noun_phrase)} | {r.landmark_distance:.1f} m ({region} the "
             f"6 m region) |\n"
             f"| quadrant | stopped **{r.final_side}**, asked **{instruction.side}** |\n"
+            f"{ambiguous}"
             f"| P(stop) at the end | {stop} |\n")
 
 

@@ -34,6 +34,7 @@ from app.panels import (
     other_side,
     readout_markdown,
     result_markdown,
+    status_line,
 )
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import quadrant_angles
@@ -226,6 +227,22 @@ def _episode_with_steps() -> Episode:
                            goal_distance=12.5, trajectory=(), actions=())
     e.result = EpisodeResult.of(record, 0.7)
     return e
+
+
+def test_an_ambiguous_instruction_is_said_to_be_one():
+    """Where the noun phrase names several landmarks of the world, the status and the result say how many and that
+    only the ringed one is the goal; an unambiguous instruction gets no such note."""
+    world = next(w for w in (world_for_env(i, preset("tiny").world) for i in range(70, 400))
+                 if any(len(w.landmarks_named(lm.noun_phrase)) > 1 for lm in w.landmarks))
+    index = next(i for i, lm in enumerate(world.landmarks) if len(world.landmarks_named(lm.noun_phrase)) > 1)
+    n = len(world.landmarks_named(world.landmarks[index].noun_phrase))
+    e = _episode_with_steps()
+    e.task = Task(world, make_instruction(world, index, "left"), np.zeros((2, 2)))
+    note = f"Ambiguous: {n} landmarks here are called"
+    assert note in status_line(e) and note in result_markdown(e)
+    unique = next(i for i, lm in enumerate(world.landmarks) if len(world.landmarks_named(lm.noun_phrase)) == 1)
+    e.task = Task(world, make_instruction(world, unique, "left"), np.zeros((2, 2)))
+    assert "Ambiguous" not in status_line(e) and "Ambiguous" not in result_markdown(e)
 
 
 def test_the_page_text_says_the_result_plainly():
