@@ -27,7 +27,8 @@ from gsmn.attribution import (
 )
 from gsmn.config import RunConfig
 from gsmn.model.checkpoint import load_checkpoint
-from gsmn.world.spec import on_field
+from gsmn.task.metrics import landmark_success
+from gsmn.world.spec import on_field, world_for_env
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,6 +67,26 @@ def ambiguous_counts(results: dict, attributions: list[Attribution | None]) -> d
     for record, a in zip(failed, attributions, strict=True):
         if a is not None and a.stage is not None and record.get("ambiguous"):
             out[a.stage] = out.get(a.stage, 0) + 1
+    return out
+
+
+def ambiguous_endings(results: dict) -> dict[str, int]:
+    """Where the episodes with an ambiguous instruction ended: within 6 m of the named landmark, of another landmark
+    of the same name (the instruction fitted it as well), or of neither."""
+    world_config = RunConfig.from_dict(results["config"]).world
+    out = {"the named one": 0, "another of that name": 0, "neither": 0}
+    for r in results["episodes"]:
+        if not r.get("ambiguous"):
+            continue
+        final = (r["final_x"], r["final_y"])
+        if landmark_success(final, (r["landmark_x"], r["landmark_y"])):
+            out["the named one"] += 1
+            continue
+        world = world_for_env(int(r["env_id"]), world_config)
+        others = [lm for i, lm in enumerate(world.landmarks)
+                  if lm.noun_phrase == r["noun_phrase"] and i != int(r["landmark_index"])]
+        near_other = any(landmark_success(final, (lm.x, lm.y)) for lm in others)
+        out["another of that name" if near_other else "neither"] += 1
     return out
 
 
@@ -113,6 +134,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"stopped by itself in {len(stopped_steps)} episodes, after {sum(stopped_steps) / len(stopped_steps):.0f}"
               " steps on average")
     print(f"ended outside the field in {ended_outside(results)} episodes")
+    endings = ambiguous_endings(results)
+    if sum(endings.values()):
+        ambiguous = [r for r in results["episodes"] if r.get("ambiguous")]
+        succeeded = sum(bool(r["success"]) for r in ambiguous)
+        print(f"{len(ambiguous)} ambiguous episodes ({succeeded} succeeded) ended near "
+              + ", ".join(f"{where} {n}" for where, n in endings.items()))
     return 0
 
 

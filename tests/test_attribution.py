@@ -231,3 +231,38 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     save_trace(tmp_path / "copy.npz", trace)
     again = load_trace(tmp_path / "copy.npz")
     assert np.array_equal(again.maps.goal_map_w, trace.maps.goal_map_w) and np.array_equal(again.v, trace.v)
+
+
+def test_ambiguous_episodes_are_told_apart_by_where_they_ended():
+    """scripts/attribution_counts.py's ambiguous_endings: an ambiguous episode that ended at the named landmark,
+    at another of the same name, or at neither is counted so; unambiguous episodes are not counted."""
+    import importlib.util
+
+    from gsmn.task.instructions import make_instruction
+    from gsmn.world.spec import world_for_env
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "attribution_counts.py"
+    spec = importlib.util.spec_from_file_location("attribution_counts", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+
+    config = preset("paper")
+    world = next(w for w in (world_for_env(i, config.world) for i in range(70, 400))
+                 if any(len(w.landmarks_named(lm.noun_phrase)) > 1 for lm in w.landmarks))
+    named = next(i for i, lm in enumerate(world.landmarks) if len(world.landmarks_named(lm.noun_phrase)) > 1)
+    other = next(lm for i, lm in enumerate(world.landmarks)
+                 if i != named and lm.noun_phrase == world.landmarks[named].noun_phrase)
+    instruction = make_instruction(world, named, "left")
+    lm = world.landmarks[named]
+
+    def episode(final_x: float, final_y: float, ambiguous: bool = True) -> dict:
+        return {"env_id": world.env_id, "ambiguous": ambiguous, "landmark_index": named,
+                "noun_phrase": instruction.noun_phrase, "landmark_x": lm.x, "landmark_y": lm.y,
+                "final_x": final_x, "final_y": final_y, "success": False}
+
+    far = next((x, y) for x in range(-40, 80, 4) for y in range(-40, 80, 4)
+               if all(np.hypot(x - m.x, y - m.y) > 8 for m in world.landmarks))
+    results = {"config": config.to_dict(),
+               "episodes": [episode(lm.x + 1, lm.y), episode(other.x, other.y + 1), episode(other.x + 0.5, other.y),
+                            episode(*far), episode(other.x, other.y, ambiguous=False)]}
+    assert script.ambiguous_endings(results) == {"the named one": 1, "another of that name": 2, "neither": 1}
