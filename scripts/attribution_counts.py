@@ -136,9 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ended outside the field in {ended_outside(results)} episodes")
     endings = ambiguous_endings(results)
     if sum(endings.values()):
-        ambiguous = [r for r in results["episodes"] if r.get("ambiguous")]
-        succeeded = sum(bool(r["success"]) for r in ambiguous)
-        print(f"{len(ambiguous)} ambiguous episodes ({succeeded} succeeded) ended near "
+        ambiguous_episodes = [r for r in results["episodes"] if r.get("ambiguous")]
+        succeeded = sum(bool(r["success"]) for r in ambiguous_episodes)
+        print(f"{len(ambiguous_episodes)} ambiguous episodes ({succeeded} succeeded) ended near "
               + ", ".join(f"{where} {n}" for where, n in endings.items()))
     return 0
 
