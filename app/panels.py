@@ -74,7 +74,8 @@ def result_markdown(episode: Episode) -> str:
     how = "said STOP" if r.stopped else f"ran out of steps (horizon {episode.horizon})"
     region = "inside" if r.landmark_success else "outside"
     stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
-    ambiguous = f"| instruction | {ambiguity_note(episode)} |\n" if instruction.ambiguous else ""
+    note = ambiguity_note(episode)
+    ambiguous = f"| instruction | {note} |\n" if note else ""
     return (f"### <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"

@@ -83,9 +83,9 @@ def ambiguous_endings(results: dict) -> dict[str, int]:
             out["the named one"] += 1
             continue
         world = world_for_env(int(r["env_id"]), world_config)
-        others = [lm for i, lm in enumerate(world.landmarks)
-                  if lm.noun_phrase == r["noun_phrase"] and i != int(r["landmark_index"])]
-        near_other = any(landmark_success(final, (lm.x, lm.y)) for lm in others)
+        named = world.landmarks[int(r["landmark_index"])]
+        near_other = any(landmark_success(final, (lm.x, lm.y))
+                         for lm in world.landmarks_named(r["noun_phrase"]) if lm is not named)
         out["another of that name" if near_other else "neither"] += 1
     return out
 

@@ -238,7 +238,6 @@ def test_ambiguous_episodes_are_told_apart_by_where_they_ended():
     at another of the same name, or at neither is counted so; unambiguous episodes are not counted."""
     import importlib.util
 
-    from gsmn.task.instructions import make_instruction
     from gsmn.world.spec import world_for_env
 
     path = Path(__file__).resolve().parents[1] / "scripts" / "attribution_counts.py"
@@ -252,12 +251,11 @@ def test_ambiguous_episodes_are_told_apart_by_where_they_ended():
     named = next(i for i, lm in enumerate(world.landmarks) if len(world.landmarks_named(lm.noun_phrase)) > 1)
     other = next(lm for i, lm in enumerate(world.landmarks)
                  if i != named and lm.noun_phrase == world.landmarks[named].noun_phrase)
-    instruction = make_instruction(world, named, "left")
     lm = world.landmarks[named]
 
     def episode(final_x: float, final_y: float, ambiguous: bool = True) -> dict:
         return {"env_id": world.env_id, "ambiguous": ambiguous, "landmark_index": named,
-                "noun_phrase": instruction.noun_phrase, "landmark_x": lm.x, "landmark_y": lm.y,
+                "noun_phrase": lm.noun_phrase, "landmark_x": lm.x, "landmark_y": lm.y,
                 "final_x": final_x, "final_y": final_y, "success": False}
 
     far = next((x, y) for x in range(-40, 80, 4) for y in range(-40, 80, 4)
