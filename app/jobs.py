@@ -253,19 +253,13 @@ class JobManager:
         ensemble (`--mirror-ensemble`)."""
         from gsmn.world.spec import SPLITS, split_env_ids
 
-        system = system or "gsmn"
         if system == "oracle" and mirror_ensemble:
             raise RunnerError("the expert has no mirror ensemble: it is a learned model's option")
         if system == "oracle":
             ckpt = None
         else:
             ckpt = self.resolve_checkpoint(checkpoint)
-            kind = _checkpoint_kind(ckpt)
-            if system != kind:
-                if checkpoint is None and system == "gsmn":
-                    system = kind
-                else:
-                    raise RunnerError(f"checkpoint {ckpt} holds a {kind!r} model, not {system!r}")
+            system = evaluation_system(system, checkpoint is not None, _checkpoint_kind(ckpt), ckpt)
         baseline = None
         if baseline_id is not None:
             baseline = self.db.evaluation(baseline_id)
@@ -695,6 +689,15 @@ def _read_json(path: Path) -> dict | None:
 def _folder_config(folder: Path, default: RunConfig) -> RunConfig:
     d = _read_json(folder / "config.json")
     return RunConfig.from_dict(d) if d else default
+
+
+def evaluation_system(system: str | None, checkpoint_named: bool, kind: str, checkpoint: Path) -> str:
+    """The system an evaluation flies with a checkpoint of `kind`: the one asked for, which must match it, or when
+    none was asked for, the checkpoint's own kind. An explicit 'gsmn' with the server's default checkpoint (none
+    named) also takes that checkpoint's kind."""
+    if system is None or system == kind or (system == "gsmn" and not checkpoint_named):
+        return kind
+    raise RunnerError(f"checkpoint {checkpoint} holds a {kind!r} model, not {system!r}")
 
 
 def _checkpoint_kind(folder: Path) -> str:

@@ -13,7 +13,16 @@ import pytest
 
 from app.commands import RunnerError
 from app.db import Database, EpisodeRow
-from app.jobs import RUN_PRESETS, _pid_runs, config_args, run_config, run_progress, run_settings, summarize_rows
+from app.jobs import (
+    RUN_PRESETS,
+    _pid_runs,
+    config_args,
+    evaluation_system,
+    run_config,
+    run_progress,
+    run_settings,
+    summarize_rows,
+)
 from app.jobs_view import compare_html, curve_data, episode_label, error_summary, summary_html
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
@@ -90,6 +99,20 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
     assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 2
     db.close()
+
+
+def test_an_evaluation_flies_the_checkpoints_own_kind_unless_asked_for_another(tmp_path):
+    """A checkpoint named without a system flies as what it holds (a GS-FPV checkpoint as gs-fpv); a system asked
+    for must match it, except 'gsmn' with the server's default checkpoint."""
+    ckpt = tmp_path / "gs-fpv"
+    assert evaluation_system(None, True, "gs-fpv", ckpt) == "gs-fpv"
+    assert evaluation_system("gs-fpv", True, "gs-fpv", ckpt) == "gs-fpv"
+    assert evaluation_system("gsmn", False, "gs-fpv", ckpt) == "gs-fpv"
+    assert evaluation_system(None, False, "gsmn", ckpt) == "gsmn"
+    with pytest.raises(RunnerError, match="holds a 'gs-fpv' model, not 'gsmn'"):
+        evaluation_system("gsmn", True, "gs-fpv", ckpt)
+    with pytest.raises(RunnerError, match="not 'gs-fpv-mem'"):
+        evaluation_system("gs-fpv-mem", False, "gs-fpv", ckpt)
 
 
 def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
