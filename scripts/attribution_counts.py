@@ -135,10 +135,9 @@ def main(argv: list[str] | None = None) -> int:
               " steps on average")
     print(f"ended outside the field in {ended_outside(results)} episodes")
     endings = ambiguous_endings(results)
-    if sum(endings.values()):
-        ambiguous_episodes = [r for r in results["episodes"] if r.get("ambiguous")]
-        succeeded = sum(bool(r["success"]) for r in ambiguous_episodes)
-        print(f"{len(ambiguous_episodes)} ambiguous episodes ({succeeded} succeeded) ended near "
+    if ambiguous := sum(endings.values()):
+        succeeded = sum(bool(r["success"]) for r in results["episodes"] if r.get("ambiguous"))
+        print(f"{ambiguous} ambiguous episodes ({succeeded} succeeded) ended near "
               + ", ".join(f"{where} {n}" for where, n in endings.items()))
     return 0
 
