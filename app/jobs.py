@@ -701,10 +701,12 @@ def evaluation_system(system: str | None, checkpoint_named: bool, kind: str, che
 
 
 def _checkpoint_kind(folder: Path) -> str:
-    meta = _read_json(Path(folder) / "meta.json")
-    if not meta or "kind" not in meta:
-        raise RunnerError(f"{folder} is not a checkpoint folder (no readable meta.json)")
-    return meta["kind"]
+    from gsmn.model.checkpoint import CheckpointError, read_checkpoint_kind
+
+    try:
+        return read_checkpoint_kind(folder)
+    except CheckpointError as e:
+        raise RunnerError(str(e)) from e
 
 
 def _loads(folder: Path) -> bool:

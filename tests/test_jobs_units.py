@@ -15,6 +15,7 @@ from app.commands import RunnerError
 from app.db import Database, EpisodeRow
 from app.jobs import (
     RUN_PRESETS,
+    JobManager,
     _pid_runs,
     config_args,
     evaluation_system,
@@ -113,6 +114,21 @@ def test_an_evaluation_flies_the_checkpoints_own_kind_unless_asked_for_another(t
         evaluation_system("gsmn", True, "gs-fpv", ckpt)
     with pytest.raises(RunnerError, match="not 'gs-fpv-mem'"):
         evaluation_system("gs-fpv-mem", False, "gs-fpv", ckpt)
+
+
+def test_a_checkpoint_of_unknown_kind_is_refused_before_anything_starts(tmp_path):
+    folder = tmp_path / "odd"
+    folder.mkdir()
+    (folder / "meta.json").write_text(json.dumps({"kind": "resnet50"}))
+    jobs = JobManager(tmp_path / "data", preset("tiny"), lambda ref: folder)
+    try:
+        for launch in (lambda: jobs.start_run(run_settings("tiny"), checkpoint="odd"),
+                       lambda: jobs.start_evaluation("odd", split="dev", episodes=1)):
+            with pytest.raises(RunnerError, match="names kind 'resnet50'"):
+                launch()
+        assert jobs.db.runs() == [] and jobs.db.evaluations() == []
+    finally:
+        jobs.close()
 
 
 def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():

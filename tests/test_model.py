@@ -27,6 +27,7 @@ from gsmn.model import (
     forward_batch,
     load_checkpoint,
     load_policy,
+    read_checkpoint_kind,
     save_checkpoint,
 )
 from gsmn.model.checkpoint import average_checkpoints
@@ -544,6 +545,19 @@ def test_weights_that_do_not_fit_are_refused(tmp_path, checkpoint):
     (checkpoint / "meta.json").write_text(json.dumps({**meta, "kind": "resnet50"}))
     with pytest.raises(CheckpointError, match="kind 'resnet50'"):
         load_checkpoint(checkpoint)
+
+
+def test_the_kind_is_read_without_the_weights(tmp_path, checkpoint):
+    (checkpoint / "weights.safetensors").unlink()  # the kind alone needs only meta.json
+    assert read_checkpoint_kind(checkpoint) == "gsmn"
+    with pytest.raises(CheckpointError, match="no such folder"):
+        read_checkpoint_kind(tmp_path / "nowhere")
+    (tmp_path / "data").mkdir()
+    with pytest.raises(CheckpointError, match="meta.json is missing"):
+        read_checkpoint_kind(tmp_path / "data")
+    (checkpoint / "meta.json").write_text("[]")
+    with pytest.raises(CheckpointError, match="names kind None"):
+        read_checkpoint_kind(checkpoint)
 
 
 def test_save_refuses_a_config_that_does_not_describe_the_model(tmp_path):

@@ -1,7 +1,7 @@
 """GSMN and its baselines (paper: Model Architecture, Auxiliary Objectives, Systems). See docs/model.md."""
 
 from gsmn.model.batch import Batch, EpisodeSample, collate
-from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_policy, save_checkpoint
+from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_policy, read_checkpoint_kind, save_checkpoint
 from gsmn.model.fpv import GSFPV, FPVOutputs
 from gsmn.model.gsmn import GSMN, GroundingOutputs, GSMNOutputs, PerceptionOutputs
 from gsmn.model.losses import LossOutputs, compute_losses, objectives_for
@@ -13,5 +13,5 @@ __all__ = [
     "KINDS", "Batch", "CheckpointError", "EpisodeSample", "FPVOutputs", "GSFPV", "GSMN", "GSMNOutputs",
     "GSMNPolicy", "GroundingOutputs", "LossOutputs", "ModelPolicy", "PerceptionOutputs", "Vocabulary",
     "build_model", "collate", "compute_losses", "forward_batch", "load_checkpoint", "load_policy",
-    "objectives_for", "save_checkpoint",
+    "objectives_for", "read_checkpoint_kind", "save_checkpoint",
 ]

@@ -124,6 +124,19 @@ def _read_json(folder: Path, name: str) -> Any:
         raise CheckpointError(f"checkpoint {folder}: {name} is not valid JSON ({e})") from e
 
 
+def read_checkpoint_kind(folder: str | Path) -> str:
+    """The model kind a checkpoint folder's meta.json names, without loading the weights (CheckpointError if the
+    folder is no checkpoint or names no known kind)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CheckpointError(f"checkpoint {folder}: no such folder")
+    meta = _read_json(folder, "meta.json")
+    kind = meta.get("kind") if isinstance(meta, dict) else None
+    if kind not in KINDS:
+        raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
+    return kind
+
+
 def read_checkpoint_config(folder: str | Path) -> RunConfig:
     """The RunConfig a checkpoint was made with (its config.json), without loading the weights."""
     folder = Path(folder)
@@ -163,12 +176,8 @@ def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
     folder = Path(folder)
     if not folder.is_dir():
         raise CheckpointError(f"checkpoint {folder}: no such folder")
+    kind = read_checkpoint_kind(folder)
     meta = _read_json(folder, "meta.json")
-    if not isinstance(meta, dict):
-        raise CheckpointError(f"checkpoint {folder}: meta.json must hold an object")
-    kind = meta.get("kind")
-    if kind not in KINDS:
-        raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
     config = read_checkpoint_config(folder)

@@ -16,7 +16,6 @@ resumes batch by batch as in supervised training.
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
 import shutil
@@ -28,7 +27,7 @@ import numpy as np
 import torch
 
 from gsmn.config import RunConfig
-from gsmn.model.checkpoint import load_policy, save_checkpoint, with_model_of
+from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.task.rollout import task_for_env
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunFolder, TrainState
@@ -82,12 +81,13 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     Adam starts from the optimizer state saved in `init` (a run continued from an earlier run's checkpoint keeps
     its optimizer, as Algorithm 1's iterations do), else fresh."""
     torch.set_num_threads(config.train.threads)
+    kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
     dc, seed = config.dagger, config.train.seed
     run = RunFolder(run_dir)
     run.start(config)
     dataset = EpisodeStore(run.root / "dataset")
-    model, vocabulary, optimizer, state = start_or_resume(run, _kind_of(init), config, init, init_optimizer)
+    model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
     state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
     run.trim_log(state.epoch)
     expert_keys = expert_store.keys()
@@ -182,10 +182,3 @@ def _link(src: Path, dst: Path) -> None:
         os.link(src, dst)
     except OSError:  # another file system: copy
         shutil.copy2(src, dst)
-
-
-def _kind_of(checkpoint: Path) -> str:
-    meta = Path(checkpoint) / "meta.json"
-    if not meta.is_file():
-        raise FileNotFoundError(f"--init {checkpoint} is not a checkpoint folder (no meta.json)")
-    return json.loads(meta.read_text())["kind"]
