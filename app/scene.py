@@ -27,6 +27,13 @@ MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the te
 LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
+# The 3D view's first camera: over the field from beyond its south-west corner (viser's vertical field of view).
+DEFAULT_CAMERA = {"position": (0.0, -13.0, 23.0), "look_at": (15.0, 13.5, 0.0), "up": (0.0, 0.0, 1.0),
+                  "fov": math.radians(75.0)}
+LABEL_GAP = 0.6  # m from a landmark's top to its label
+LABEL_STEP = 0.5  # m a label rises at a time to clear another
+LABEL_MAX_RISE = 8.0
+LABEL_PX = {"char": 6.5, "pad": 10.0, "height": 18.0, "viewport": 900.0}  # a viser label at screen scale 1
 
 
 def yaw_wxyz(yaw: float) -> tuple[float, float, float, float]:
@@ -68,8 +75,58 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
         for k, part in enumerate(model.parts):
             scene.add_mesh_simple(f"{frame}/part_{k}", part.vertices, part.faces, color=_rgb(part.rgba),
                                   scale=lm.scale, flat_shading=True)
-        scene.add_label(f"/world/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, model.height * lm.scale + 0.6),
-                        anchor="bottom-center")
+    tops = [by_name[lm.model].height * lm.scale for lm in world.landmarks]
+    heights = label_heights([(lm.x, lm.y, top) for lm, top in zip(world.landmarks, tops, strict=True)],
+                            [lm.noun_phrase for lm in world.landmarks])
+    for i, (lm, top, z) in enumerate(zip(world.landmarks, tops, heights, strict=True)):
+        scene.add_label(f"/world/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, z), anchor="bottom-center")
+        if z > top + LABEL_GAP + 1e-6:  # raised to clear another label: a thin stem says whose it is
+            scene.add_line_segments(f"/world/label_stem_{i}", np.array([[[lm.x, lm.y, top + 0.1], [lm.x, lm.y, z]]]),
+                                    colors=(90, 90, 90), line_width=1.5)
+
+
+def label_box(point: tuple[float, float, float], text: str, camera: dict = DEFAULT_CAMERA
+              ) -> tuple[float, float, float, float] | None:
+    """The pixel box (left, top, right, bottom; from the view's centre, y down) of a viser label anchored
+    bottom-centre at `point`, at screen scale 1 on a 900-pixel-high view from `camera`; None behind it."""
+    eye, target, up = (np.asarray(camera[k], dtype=float) for k in ("position", "look_at", "up"))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    focal = LABEL_PX["viewport"] / 2 / math.tan(camera["fov"] / 2)
+    d = np.asarray(point, dtype=float) - eye
+    depth = d @ forward
+    if depth <= 0.1:
+        return None
+    u, v = focal * (d @ right) / depth, focal * (d @ down) / depth
+    w = LABEL_PX["char"] * len(text) + LABEL_PX["pad"]
+    return u - w / 2, v - LABEL_PX["height"], u + w / 2, v
+
+
+def boxes_overlap(a: tuple[float, float, float, float] | None, b: tuple[float, float, float, float] | None) -> bool:
+    return a is not None and b is not None and a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def label_heights(tops: list[tuple[float, float, float]], texts: list[str],
+                  camera: dict = DEFAULT_CAMERA) -> list[float]:
+    """Heights for labels (anchored bottom-centre) above points `tops` so that, seen from the 3D view's first
+    camera, no two overlap: labels nearer the camera keep their place (LABEL_GAP above the top) and each farther
+    one rises by LABEL_STEP until its box is clear (at most LABEL_MAX_RISE). A rotated camera can still see
+    labels overlap."""
+    eye = np.asarray(camera["position"], dtype=float)
+    heights = [top[2] + LABEL_GAP for top in tops]
+    placed: list[tuple[float, float, float, float]] = []
+    for i in sorted(range(len(tops)), key=lambda i: float(np.linalg.norm(np.asarray(tops[i]) - eye))):
+        x, y, top = tops[i]
+        z = top + LABEL_GAP
+        while (any(boxes_overlap(label_box((x, y, z), texts[i], camera), p) for p in placed)
+               and z < top + LABEL_GAP + LABEL_MAX_RISE):
+            z += LABEL_STEP
+        heights[i] = z
+        if (b := label_box((x, y, z), texts[i], camera)) is not None:
+            placed.append(b)
+    return heights
 
 
 def _has(scene: viser.SceneApi, name: str) -> bool:

@@ -57,7 +57,7 @@ from app.panels import (
 )
 from app.recording import Episode, StepRecord
 from app.runner import Runner
-from app.scene import SceneView
+from app.scene import DEFAULT_CAMERA, SceneView
 from gsmn.task.instructions import InstructionError, parse_instruction
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
 
@@ -115,7 +115,8 @@ class Viewer(RunnerListener):
         self._cell_of = lambda x, y: world_cell(x, y, field, cells)
         server.scene.set_up_direction("+z")
         camera = server.initial_camera  # over the field from beyond its south-west corner
-        camera.position, camera.look_at, camera.up = (0.0, -13.0, 23.0), (15.0, 13.5, 0.0), (0.0, 0.0, 1.0)
+        camera.position, camera.look_at, camera.up, camera.fov = (DEFAULT_CAMERA[k] for k in (
+            "position", "look_at", "up", "fov"))
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)

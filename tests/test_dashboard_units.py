@@ -37,13 +37,13 @@ from app.panels import (
     status_line,
 )
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
-from app.scene import quadrant_angles
+from app.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from gsmn.config import preset
 from gsmn.task.instructions import SIDES, make_instruction
 from gsmn.task.metrics import side_of
 from gsmn.task.rollout import Task
 from gsmn.world.landmarks import CATALOGUE
-from gsmn.world.spec import world_for_env
+from gsmn.world.spec import split_env_ids, world_for_env
 
 
 def test_colormap_spans_its_range_and_clips():
@@ -204,6 +204,27 @@ def test_the_drawn_quadrant_is_the_one_the_metric_accepts():
             # the goal lies on the drawn quadrant's bisector
             goal_angle = math.atan2(instruction.goal_y - lm.y, instruction.goal_x - lm.x)
             assert math.isclose(math.cos(goal_angle - middle), 1.0, abs_tol=1e-9)
+
+
+def test_landmark_labels_do_not_overlap_from_the_first_camera():
+    """In env 70 the globe's label sits on the windmill's at their natural heights; raised, no two labels of the
+    first 100 test worlds overlap as the 3D view first shows them, and none is lowered."""
+    from gsmn.world.assets import load_catalogue
+
+    top_of = {m.name: m.height for m in load_catalogue()}
+    for env_id in split_env_ids("test", 100):
+        world = world_for_env(env_id)
+        tops = [(lm.x, lm.y, top_of[lm.model] * lm.scale) for lm in world.landmarks]
+        texts = [lm.noun_phrase for lm in world.landmarks]
+        heights = label_heights(tops, texts)
+        boxes = [label_box((x, y, z), t) for (x, y, _), z, t in zip(tops, heights, texts, strict=True)]
+        assert all(z >= top + LABEL_GAP - 1e-9 for (_, _, top), z in zip(tops, heights, strict=True))
+        assert not any(boxes_overlap(a, b) for i, a in enumerate(boxes) for b in boxes[i + 1:]), env_id
+        if env_id == 70:
+            natural = [label_box((x, y, top + LABEL_GAP), t) for (x, y, top), t in zip(tops, texts, strict=True)]
+            globe, windmill = texts.index("globe"), texts.index("windmill")
+            assert boxes_overlap(natural[globe], natural[windmill])
+            assert heights[globe] > tops[globe][2] + LABEL_GAP  # the farther one rose
 
 
 def _episode_with_steps() -> Episode:
