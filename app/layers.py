@@ -27,7 +27,7 @@ from app.colors import (
     semantic_rgb,
     softmax,
 )
-from gsmn.attribution import goal_head_trained
+from gsmn.attribution import Heads
 from gsmn.world.landmarks import CATALOGUE
 
 LAYERS = ("semantic", "relevance", "goal", "goal_robot")
@@ -39,28 +39,11 @@ NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
 
 
 @dataclass(frozen=True)
-class MapHeads:
-    """The auxiliary heads of a GSMN as numpy arrays (weight (K, C), bias (K,)), and the class names."""
+class MapHeads(Heads):
+    """The auxiliary heads of a GSMN as numpy arrays (gsmn.attribution.Heads; `MapHeads.of(model)`), and the
+    perception head's class names for the legend."""
 
-    perception_w: np.ndarray
-    perception_b: np.ndarray
-    grounding_w: np.ndarray
-    grounding_b: np.ndarray
-    goal_w: np.ndarray
-    goal_b: np.ndarray
-    class_names: tuple[str, ...]
-    goal_trained: bool = True  # False without J_plan: P(goal) would be an untrained head's output
-
-    @classmethod
-    def of(cls, model) -> MapHeads:
-        heads = model.heads
-
-        def arr(t) -> np.ndarray:
-            return t.detach().cpu().float().numpy().copy()
-
-        return cls(arr(heads.perception.weight), arr(heads.perception.bias), arr(heads.grounding.weight),
-                   arr(heads.grounding.bias), arr(heads.goal.weight), arr(heads.goal.bias),
-                   tuple(m.noun_phrase for m in CATALOGUE), goal_head_trained(model))
+    class_names: tuple[str, ...] = tuple(m.noun_phrase for m in CATALOGUE)
 
     @property
     def palette(self) -> np.ndarray:

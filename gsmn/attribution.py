@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 import torch
@@ -50,20 +49,11 @@ def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:
     return tuple(k for k in STAGES if k != "goal_or_control" or any(c.get(k, 0) for c in counts))
 
 
-class HeadWeights(Protocol):
-    """The auxiliary heads as arrays, weight (K, C) and bias (K,) (app.layers.MapHeads has these)."""
-
-    perception_w: np.ndarray
-    perception_b: np.ndarray
-    grounding_w: np.ndarray
-    grounding_b: np.ndarray
-    goal_w: np.ndarray
-    goal_b: np.ndarray
-    goal_trained: bool  # False for a model trained without J_plan: its goal head is its initialisation
-
-
 @dataclass(frozen=True)
 class Heads:
+    """The auxiliary heads as arrays, weight (K, C) and bias (K,); `goal_trained` is False for a model trained
+    without J_plan, whose goal head is its initialisation."""
+
     perception_w: np.ndarray
     perception_b: np.ndarray
     grounding_w: np.ndarray
@@ -179,7 +169,7 @@ _MISSED = {"ahead": "stopped {d:.1f} m short of it (the peak ahead)", "behind": 
            "right": "stopped {d:.1f} m beside it (the peak to its right)"}
 
 
-def goal_peak(goal_map_w: np.ndarray, heads: HeadWeights) -> tuple[int, int, float]:
+def goal_peak(goal_map_w: np.ndarray, heads: Heads) -> tuple[int, int, float]:
     """(row, col, P(goal)) of the cell with the highest P(goal)."""
     p = positive_probability(goal_map_w, heads.goal_w, heads.goal_b)
     k = int(np.argmax(p))
@@ -187,7 +177,7 @@ def goal_peak(goal_map_w: np.ndarray, heads: HeadWeights) -> tuple[int, int, flo
 
 
 # -- the attribution ----------------------------------------------------------------------------------------------
-def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction: Instruction,
+def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Instruction,
               final_xy: tuple[float, float], stopped: bool, success: bool, success_radius: float = 6.0,
               final_yaw: float | None = None) -> Attribution:
     """Attribute an episode's outcome to the first stage of the pipeline the model got wrong (see the module
@@ -264,7 +254,7 @@ def attribute(maps: FinalMaps, heads: HeadWeights, world: WorldSpec, instruction
         final_to_peak=final_to_peak, peak_bearing=peak_bearing)
 
 
-def attribute_record(record: dict, trace: ModelTrace, heads: HeadWeights, config: RunConfig) -> Attribution:
+def attribute_record(record: dict, trace: ModelTrace, heads: Heads, config: RunConfig) -> Attribution:
     """`attribute` for one episode of a `gsmn eval` result (a dict as in its JSON) and its recorded trace, under
     the evaluation's RunConfig (the world is rebuilt from the episode's env id)."""
     world = world_for_env(int(record["env_id"]), config.world)

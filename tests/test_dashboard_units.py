@@ -105,7 +105,7 @@ def _heads(C: int = 32) -> MapHeads:
     return MapHeads(rng.normal(size=(63, C)).astype(np.float32), np.zeros(63, np.float32),
                     np.array([[0, 0, 0], [1, 0, 0]], np.float32), np.zeros(2, np.float32),
                     np.array([[0, 0], [1, 0]], np.float32), np.zeros(2, np.float32),
-                    tuple(m.noun_phrase for m in CATALOGUE))
+                    class_names=tuple(m.noun_phrase for m in CATALOGUE))
 
 
 def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
