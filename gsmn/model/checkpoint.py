@@ -174,9 +174,7 @@ def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
                     ) -> tuple[Model, RunConfig, Vocabulary, dict[str, Any]]:
     """(model in eval mode, config, vocabulary, meta) from a checkpoint folder."""
     folder = Path(folder)
-    if not folder.is_dir():
-        raise CheckpointError(f"checkpoint {folder}: no such folder")
-    kind = read_checkpoint_kind(folder)
+    kind = read_checkpoint_kind(folder)  # a missing folder, meta.json or known kind says so here
     meta = _read_json(folder, "meta.json")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
