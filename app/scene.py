@@ -120,12 +120,13 @@ def label_heights(tops: list[tuple[float, float, float]], texts: list[str],
     for i in sorted(range(len(tops)), key=lambda i: float(np.linalg.norm(np.asarray(tops[i]) - eye))):
         x, y, top = tops[i]
         z = top + LABEL_GAP
-        while (any(boxes_overlap(label_box((x, y, z), texts[i], camera), p) for p in placed)
-               and z < top + LABEL_GAP + LABEL_MAX_RISE):
+        box = label_box((x, y, z), texts[i], camera)
+        while any(boxes_overlap(box, p) for p in placed) and z < top + LABEL_GAP + LABEL_MAX_RISE:
             z += LABEL_STEP
+            box = label_box((x, y, z), texts[i], camera)
         heights[i] = z
-        if (b := label_box((x, y, z), texts[i], camera)) is not None:
-            placed.append(b)
+        if box is not None:
+            placed.append(box)
     return heights
 
 

@@ -556,6 +556,9 @@ def test_the_kind_is_read_without_the_weights(tmp_path, checkpoint):
     with pytest.raises(CheckpointError, match="meta.json is missing"):
         read_checkpoint_kind(tmp_path / "data")
     (checkpoint / "meta.json").write_text("[]")
+    with pytest.raises(CheckpointError, match="meta.json must hold an object"):
+        read_checkpoint_kind(checkpoint)
+    (checkpoint / "meta.json").write_text("{}")
     with pytest.raises(CheckpointError, match="names kind None"):
         read_checkpoint_kind(checkpoint)
 

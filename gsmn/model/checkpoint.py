@@ -127,14 +127,20 @@ def _read_json(folder: Path, name: str) -> Any:
 def read_checkpoint_kind(folder: str | Path) -> str:
     """The model kind a checkpoint folder's meta.json names, without loading the weights (CheckpointError if the
     folder is no checkpoint or names no known kind)."""
-    folder = Path(folder)
+    return _read_meta(Path(folder))[1]
+
+
+def _read_meta(folder: Path) -> tuple[dict[str, Any], str]:
+    """(meta.json, its kind) of a checkpoint folder, checked: the folder exists and the kind is known."""
     if not folder.is_dir():
         raise CheckpointError(f"checkpoint {folder}: no such folder")
     meta = _read_json(folder, "meta.json")
-    kind = meta.get("kind") if isinstance(meta, dict) else None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"checkpoint {folder}: meta.json must hold an object")
+    kind = meta.get("kind")
     if kind not in KINDS:
         raise CheckpointError(f"checkpoint {folder}: meta.json names kind {kind!r}; known kinds: {', '.join(KINDS)}")
-    return kind
+    return meta, kind
 
 
 def read_checkpoint_config(folder: str | Path) -> RunConfig:
@@ -174,8 +180,7 @@ def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"
                     ) -> tuple[Model, RunConfig, Vocabulary, dict[str, Any]]:
     """(model in eval mode, config, vocabulary, meta) from a checkpoint folder."""
     folder = Path(folder)
-    kind = read_checkpoint_kind(folder)  # a missing folder, meta.json or known kind says so here
-    meta = _read_json(folder, "meta.json")
+    meta, kind = _read_meta(folder)
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {folder}: format {meta.get('format')!r}, this code reads format {FORMAT}")
     config = read_checkpoint_config(folder)
