@@ -18,6 +18,7 @@ from app.colors import data_uri, png_bytes
 from app.commands import Grounding
 from app.layers import CellReport, Layer
 from app.recording import FINISHED, Episode, StepRecord
+from gsmn.task.metrics import steps_in_success_region
 
 PIXELATED = "width:100%;image-rendering:pixelated;display:block"
 
@@ -62,8 +63,9 @@ def ambiguity_note(episode: Episode) -> str:
             f"the ringed one, and ending at another of them counts as a failure.*")
 
 
-def result_markdown(episode: Episode) -> str:
-    """The outcome, plainly: success, distances, steps, how it ended, the final STOP probability."""
+def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
+    """The outcome, plainly: success, distances, steps, how it ended, whether a failure flew through the success
+    region, the final STOP probability."""
     r = episode.result
     if episode.status != FINISHED or r is None:
         return f"### Stopped early\nEpisode {episode.id} {episode.status} after {len(episode.steps)} steps." \
@@ -76,15 +78,39 @@ def result_markdown(episode: Episode) -> str:
     stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
     note = ambiguity_note(episode)
     ambiguous = f"| instruction | {note} |\n" if note else ""
+    passed = "" if r.success else f"| success region | {region_passage(episode, success_radius)} |\n"
     return (f"### <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
             f"| distance to goal | **{r.goal_distance:.1f} m** |\n"
             f"| distance to the {html.escape(instruction.noun_phrase)} | {r.landmark_distance:.1f} m ({region} the "
-            f"6 m region) |\n"
+            f"{success_radius:g} m region) |\n"
             f"| quadrant | stopped **{r.final_side}**, asked **{instruction.side}** |\n"
+            f"{passed}"
             f"{ambiguous}"
             f"| P(stop) at the end | {stop} |\n")
+
+
+def region_passage(episode: Episode, success_radius: float = 6.0) -> str:
+    """For a failed episode: whether the drone ever flew through the success region (where STOP would have
+    succeeded), at which steps, and the model's highest P(stop) there. Telling a stopping failure from a
+    navigation failure is the first question about a failure of a model that flies well."""
+    task = episode.task
+    landmark = task.world.landmarks[task.instruction.landmark_index]
+    inside = steps_in_success_region((s.position for s in episode.steps), landmark.position,
+                                     task.world.start_position, task.instruction.side, success_radius)
+    if not inside:
+        return "never entered"
+    spans, first = [], inside[0]
+    for a, b in zip(inside, inside[1:] + [None], strict=True):
+        if b != a + 1:
+            spans.append(f"{first}" if first == a else f"{first}-{a}")
+            first = b
+    steps = episode.steps
+    probabilities = [steps[i].maps.stop_probability for i in inside if steps[i].maps is not None]
+    highest = f"; highest P(stop) there **{max(probabilities):.2f}**" if probabilities else ""
+    return (f"flew through it at step{'s' if len(inside) > 1 else ''} {', '.join(spans)} without a STOP there"
+            f"{highest}")
 
 
 def readout_markdown(episode: Episode, t: int, counterfactual, whatif_text: str | None) -> str:

@@ -369,7 +369,7 @@ class Viewer(RunnerListener):
             episode = event[1]
             if episode is v.episode:
                 v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
-                self.result.content = result_markdown(episode)
+                self.result.content = result_markdown(episode, self.runner.config.task.success_radius)
                 self.status.content = status_line(episode)
                 return True
             return False

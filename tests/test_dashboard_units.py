@@ -250,6 +250,23 @@ def _episode_with_steps() -> Episode:
     return e
 
 
+def test_a_failure_says_whether_it_flew_through_the_success_region():
+    """The episode's one step is at the start: never entered. Steps added at the goal (inside the left quadrant)
+    and away from it are reported as spans with the highest P(stop) there; a success has no such row."""
+    from dataclasses import replace
+
+    e = _episode_with_steps()
+    assert "| success region | never entered |" in result_markdown(e)
+    first = e.steps[0]
+    goal = (e.task.instruction.goal_x, e.task.instruction.goal_y, 5.0)
+    for i, (position, p) in enumerate([(goal, 0.2), (goal, 0.35), (first.position, 0.9), (goal, 0.1)], start=1):
+        e.steps.append(replace(first, step=i, position=position, stop=False, maps=replace(first.maps,
+                                                                                         stop_probability=p)))
+    text = result_markdown(e)
+    assert "flew through it at steps 1-2, 4 without a STOP there; highest P(stop) there **0.35**" in text
+    assert "success region" not in result_markdown(replace(e, result=replace(e.result, success=True)))
+
+
 def test_an_ambiguous_instruction_is_said_to_be_one():
     """Where the noun phrase names several landmarks of the world, the status and the result say how many and that
     only the ringed one is the goal; an unambiguous instruction gets no such note."""

@@ -164,6 +164,17 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     assert len(rows) == 4 and rows[2].startswith("| Random landmark | ") and rows[3].startswith("| The expert | ")
     oracle_summary = json.loads(oracle.read_text())["summary"]
     assert f"| {oracle_summary['success']:.2f} " in rows[3] and "| 87.87 (86.47) |" in rows[3]
+    # scripts/region_counts.py: every success entered the success region; the oracle's stops are its successes.
+    region_counts = Path(__file__).resolve().parents[1] / "scripts" / "region_counts.py"
+    counts = subprocess.run([sys.executable, str(region_counts), f"oracle={oracle}", f"random={out}"], capture_output=True,
+                            text=True)
+    assert counts.returncode == 0, counts.stderr
+    for name, path in (("oracle", oracle), ("random", out)):
+        episodes = json.loads(path.read_text())["episodes"]
+        row = next(r for r in counts.stdout.splitlines() if r.startswith(f"| {name} |")).strip("| ").split(" | ")
+        successes, entered = int(row[2]), int(row[3])
+        assert successes == sum(e["success"] for e in episodes) and entered >= successes
+    assert "entered: only oracle" in counts.stdout
     d["env_ids"] = [70, 71]
     other = tmp_path / "other.json"
     other.write_text(json.dumps(d))

@@ -26,6 +26,7 @@ from gsmn.task.metrics import (
     goal_distance,
     landmark_success,
     side_of,
+    steps_in_success_region,
     success,
     summarize,
 )
@@ -102,6 +103,16 @@ def test_success_radius_is_open_at_exactly_6_m():
     assert not success((16.0, 0.0), lm, start, "back")
     assert landmark_success((16.0, 0.0), lm, radius=6.5)
     assert goal_distance((3, 4), (0, 0)) == 5.0
+
+
+def test_steps_in_success_region_are_where_a_stop_would_have_succeeded():
+    """A flight straight through the landmark from the start: behind it (back) at 10.5-15.5 m, not beside it."""
+    lm, start = (10.0, 0.0), (0.0, 0.0)
+    path = [(x, 0.0, 5.0) for x in np.arange(0.0, 20.0, 1.0)]  # (x, y, z) positions, one per step
+    assert steps_in_success_region(path, lm, start, "back") == [10, 11, 12, 13, 14, 15]  # 16 m is 6 m away
+    assert steps_in_success_region(path, lm, start, "front") == [5, 6, 7, 8, 9]
+    assert steps_in_success_region(path, lm, start, "left") == []
+    assert steps_in_success_region(path, lm, start, "back", radius=3.0) == [10, 11, 12]
 
 
 def _outcome(final, side="back", ambiguous=False) -> EpisodeOutcome:

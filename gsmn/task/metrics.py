@@ -46,6 +46,13 @@ def success(final_xy: Any, landmark_xy: Any, start_xy: Any, side: str, radius: f
     return landmark_success(final_xy, landmark_xy, radius) and side_of(landmark_xy, start_xy, final_xy) == side
 
 
+def steps_in_success_region(positions: Iterable[Any], landmark_xy: Any, start_xy: Any, side: str,
+                            radius: float = 6.0) -> list[int]:
+    """The indices of the positions (one per step) at which a STOP would have succeeded: a policy that passes
+    through the success region without saying STOP fails on its stopping, not on its navigation."""
+    return [i for i, p in enumerate(positions) if success(p, landmark_xy, start_xy, side, radius)]
+
+
 def goal_distance(final_xy: Any, goal_xy: Any) -> float:
     """Distance from the final position to the demonstration's goal (m)."""
     return math.dist(_xy(final_xy), _xy(goal_xy))

@@ -1,0 +1,64 @@
+"""Navigation against stopping: of each evaluation's episodes, how many flew into the success region at some step
+(where a STOP would have succeeded), how many of those said STOP there, how many stopped elsewhere later and how
+many never stopped; with a sign test on "entered the region" between evaluations of the same environments.
+
+    python scripts/region_counts.py gs-fpv=runs/eval17_gs-fpv.json gs-fpv-mem=runs/eval17_gs-fpv-mem.json
+
+Reads the trajectories of `gsmn eval --json` files (no recordings needed). A system that enters the region often
+but succeeds rarely fails on its STOP, not on its navigation (docs/training.md, the baselines' order).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from itertools import combinations
+from pathlib import Path
+
+from gsmn.task.metrics import steps_in_success_region
+
+
+def entered(episode: dict, radius: float) -> bool:
+    return bool(steps_in_success_region(episode["trajectory"], (episode["landmark_x"], episode["landmark_y"]),
+                                        (episode["start_x"], episode["start_y"]), episode["side"], radius))
+
+
+def sign_test(a: int, b: int) -> float:
+    """Two-sided exact sign test of a against b discordant pairs."""
+    k, n = min(a, b), a + b
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("evaluations", nargs="+", help="NAME=PATH of `gsmn eval --json` files")
+    parser.add_argument("--radius", type=float, default=6.0, help="the success radius (m)")
+    args = parser.parse_args()
+    reached: dict[str, dict[int, bool]] = {}
+    print("| system | episodes | success | entered the region | of those: success | stopped elsewhere later | "
+          "never stopped |")
+    print("|---|---|---|---|---|---|---|")
+    for spec in args.evaluations:
+        name, _, path = spec.partition("=")
+        if not path:
+            parser.error(f"expected NAME=PATH, got {spec!r}")
+        episodes = json.loads(Path(path).read_text())["episodes"]
+        reached[name] = {e["env_id"]: entered(e, args.radius) for e in episodes}
+        n_in = sum(reached[name].values())
+        ok = sum(e["success"] for e in episodes)
+        missed = [e for e in episodes if reached[name][e["env_id"]] and not e["success"]]
+        later = sum(e["stopped"] for e in missed)
+        print(f"| {name} | {len(episodes)} | {ok} | {n_in} | {ok} ({100 * ok / max(n_in, 1):.0f} %) | {later} | "
+              f"{len(missed) - later} |")
+    for (na, a), (nb, b) in combinations(reached.items(), 2):
+        if a.keys() != b.keys():
+            print(f"{na} vs {nb}: not the same environments")
+            continue
+        x = sum(a[i] and not b[i] for i in a)
+        y = sum(b[i] and not a[i] for i in a)
+        print(f"entered: only {na} {x}, only {nb} {y}, sign test p = {sign_test(x, y):.2g}")
+
+
+if __name__ == "__main__":
+    main()
