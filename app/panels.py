@@ -135,15 +135,23 @@ def whatif_markdown(g: Grounding, record: StepRecord) -> str:
             f"{1000 * g.seconds:.1f} ms on the map already built; gold marks its goal and quadrant.")
 
 
-def timeline_marks(episode: Episode) -> tuple[tuple[int, str], ...]:
-    """Marks on the timeline: the ends, and the first step where the model's P(stop) passed 0.5."""
-    last = max(len(episode.steps) - 1, 1)
-    marks = [(0, "0")]
-    stop = next((s.step for s in list(episode.steps) if s.maps is not None and s.maps.stop_probability > 0.5), None)
+def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple[int, str], ...]:
+    """Marks on the timeline: the ends, the first step inside the success region (where a STOP would have
+    succeeded), and the first step where the model's P(stop) passed 0.5."""
+    steps = list(episode.steps)
+    last = max(len(steps) - 1, 1)
+    marks = {0: "0"}
+    task = episode.task
+    landmark = task.world.landmarks[task.instruction.landmark_index]
+    inside = steps_in_success_region((s.position for s in steps), landmark.position, task.world.start_position,
+                                     task.instruction.side, success_radius)
+    if inside and 0 < inside[0] < last:
+        marks[inside[0]] = "in region"
+    stop = next((s.step for s in steps if s.maps is not None and s.maps.stop_probability > 0.5), None)
     if stop is not None and 0 < stop < last:
-        marks.append((stop, "P(stop)>0.5"))
-    marks.append((last, str(last)))
-    return tuple(marks)
+        marks[stop] = "P(stop)>0.5" if stop not in marks else f"{marks[stop]}, P(stop)>0.5"
+    marks[last] = str(last)
+    return tuple(sorted(marks.items()))
 
 
 def inspector_markdown(report: CellReport | None, step: int) -> str:

@@ -668,7 +668,8 @@ class Viewer(RunnerListener):
         self.timeline.max = max(1, last)
         self.timeline.value = t
         episode = self.view.episode
-        marks = timeline_marks(episode) if episode is not None else ((0, "0"), (1, "1"))
+        radius = self.runner.config.task.success_radius
+        marks = timeline_marks(episode, radius) if episode is not None else ((0, "0"), (1, "1"))
         if marks != self._marks:
             self._marks = marks
             # viser 1.1 takes marks only at creation; its handle keeps them in the `_marks` prop

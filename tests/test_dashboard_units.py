@@ -35,6 +35,7 @@ from app.panels import (
     readout_markdown,
     result_markdown,
     status_line,
+    timeline_marks,
 )
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
@@ -257,7 +258,7 @@ def test_a_failure_says_whether_it_flew_through_the_success_region():
 
     e = _episode_with_steps()
     assert "| success region | never entered |" in result_markdown(e)
-    first = e.steps[0]
+    first = e.steps[0] = replace(e.steps[0], maps=replace(e.steps[0].maps, stop_probability=0.1))
     goal = (e.task.instruction.goal_x, e.task.instruction.goal_y, 5.0)
     for i, (position, p) in enumerate([(goal, 0.2), (goal, 0.35), (first.position, 0.9), (goal, 0.1)], start=1):
         e.steps.append(replace(first, step=i, position=position, stop=False, maps=replace(first.maps,
@@ -265,6 +266,8 @@ def test_a_failure_says_whether_it_flew_through_the_success_region():
     text = result_markdown(e)
     assert "flew through it at steps 1-2, 4 without a STOP there; highest P(stop) there **0.35**" in text
     assert "success region" not in result_markdown(replace(e, result=replace(e.result, success=True)))
+    # the timeline marks the first step inside the region and the first step past P(stop) 0.5 after the start
+    assert timeline_marks(e) == ((0, "0"), (1, "in region"), (3, "P(stop)>0.5"), (4, "4"))
 
 
 def test_an_ambiguous_instruction_is_said_to_be_one():

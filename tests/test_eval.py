@@ -166,8 +166,8 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     assert f"| {oracle_summary['success']:.2f} " in rows[3] and "| 87.87 (86.47) |" in rows[3]
     # scripts/region_counts.py: every success entered the success region; the oracle's stops are its successes.
     region_counts = Path(__file__).resolve().parents[1] / "scripts" / "region_counts.py"
-    counts = subprocess.run([sys.executable, str(region_counts), f"oracle={oracle}", f"random={out}"], capture_output=True,
-                            text=True)
+    counts = subprocess.run([sys.executable, str(region_counts), f"oracle={oracle}", f"random={out}"],
+                            capture_output=True, text=True)
     assert counts.returncode == 0, counts.stderr
     for name, path in (("oracle", oracle), ("random", out)):
         episodes = json.loads(path.read_text())["episodes"]
