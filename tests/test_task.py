@@ -106,10 +106,11 @@ def test_success_radius_is_open_at_exactly_6_m():
 
 
 def test_steps_in_success_region_are_where_a_stop_would_have_succeeded():
-    """A flight straight through the landmark from the start: behind it (back) at 10.5-15.5 m, not beside it."""
+    """A flight from the start straight through the landmark at x = 10: in the back quadrant from the centre (which
+    counts as back) to 15 m, in the front one from 5 to 9 m, never in the left one; 4 and 16 m are 6 m away."""
     lm, start = (10.0, 0.0), (0.0, 0.0)
     path = [(x, 0.0, 5.0) for x in np.arange(0.0, 20.0, 1.0)]  # (x, y, z) positions, one per step
-    assert steps_in_success_region(path, lm, start, "back") == [10, 11, 12, 13, 14, 15]  # 16 m is 6 m away
+    assert steps_in_success_region(path, lm, start, "back") == [10, 11, 12, 13, 14, 15]
     assert steps_in_success_region(path, lm, start, "front") == [5, 6, 7, 8, 9]
     assert steps_in_success_region(path, lm, start, "left") == []
     assert steps_in_success_region(path, lm, start, "back", radius=3.0) == [10, 11, 12]
