@@ -135,23 +135,27 @@ def whatif_markdown(g: Grounding, record: StepRecord) -> str:
             f"{1000 * g.seconds:.1f} ms on the map already built; gold marks its goal and quadrant.")
 
 
-def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple[int, str], ...]:
+def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple[int, str | None], ...]:
     """Marks on the timeline: the ends, the first step inside the success region (where a STOP would have
-    succeeded), and the first step where the model's P(stop) passed 0.5."""
+    succeeded), and the first step where the model's P(stop) passed 0.5. Labels closer than 8 % of the timeline
+    would print over each other: two such inner marks share one label, and an end beside an inner mark keeps
+    its tick without its number (label None; the step box beside the slider shows it)."""
     steps = list(episode.steps)
     last = max(len(steps) - 1, 1)
-    marks = {0: "0"}
     task = episode.task
     landmark = task.world.landmarks[task.instruction.landmark_index]
     inside = steps_in_success_region((s.position for s in steps), landmark.position, task.world.start_position,
                                      task.instruction.side, success_radius)
-    if inside and 0 < inside[0] < last:
-        marks[inside[0]] = "in region"
     stop = next((s.step for s in steps if s.maps is not None and s.maps.stop_probability > 0.5), None)
-    if stop is not None and 0 < stop < last:
-        marks[stop] = "P(stop)>0.5" if stop not in marks else f"{marks[stop]}, P(stop)>0.5"
-    marks[last] = str(last)
-    return tuple(sorted(marks.items()))
+    inner = [(t, label) for t, label in ((inside[0] if inside else None, "in region"), (stop, "P(stop)>0.5"))
+             if t is not None and 0 < t < last]
+    inner.sort(key=lambda mark: mark[0])  # stable: at one step, "in region" first
+    near = max(1.0, 0.08 * last)
+    if len(inner) == 2 and inner[1][0] - inner[0][0] < near:
+        (a, first), (b, second) = inner
+        inner = [(a, f"{first}, {second}")] + ([(b, None)] if b != a else [])
+    ends = [(t, None if any(abs(t - u) < near for u, _ in inner) else str(t)) for t in (0, last)]
+    return tuple(sorted(ends + inner, key=lambda mark: mark[0]))
 
 
 def inspector_markdown(report: CellReport | None, step: int) -> str:

@@ -268,6 +268,15 @@ def test_a_failure_says_whether_it_flew_through_the_success_region():
     assert "success region" not in result_markdown(replace(e, result=replace(e.result, success=True)))
     # the timeline marks the first step inside the region and the first step past P(stop) 0.5 after the start
     assert timeline_marks(e) == ((0, "0"), (1, "in region"), (3, "P(stop)>0.5"), (4, "4"))
+    # marks closer than 8 % of the timeline share a label; an end beside one loses its number, not its tick
+    away = [replace(first, step=i, position=first.position) for i in range(1, 28)]
+    late = _episode_with_steps()
+    late.steps[:] = [first, *away, replace(first, step=28, position=goal), replace(first, step=29, position=goal)]
+    assert timeline_marks(late) == ((0, "0"), (28, "in region"), (29, None))
+    late.steps[28] = replace(late.steps[28], maps=replace(first.maps, stop_probability=0.6))
+    assert timeline_marks(late) == ((0, "0"), (28, "in region, P(stop)>0.5"), (29, None))
+    late.steps[27] = replace(late.steps[27], maps=replace(first.maps, stop_probability=0.6))
+    assert timeline_marks(late) == ((0, "0"), (27, "P(stop)>0.5, in region"), (28, None), (29, None))
 
 
 def test_an_ambiguous_instruction_is_said_to_be_one():
