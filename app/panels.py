@@ -91,14 +91,19 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
             f"| P(stop) at the end | {stop} |\n")
 
 
+def steps_in_region(episode: Episode, success_radius: float = 6.0) -> list[int]:
+    """The episode's steps so far at which a STOP would have succeeded (`steps_in_success_region`)."""
+    task = episode.task
+    landmark = task.world.landmarks[task.instruction.landmark_index]
+    return steps_in_success_region([s.position for s in list(episode.steps)], landmark.position,
+                                   task.world.start_position, task.instruction.side, success_radius)
+
+
 def region_passage(episode: Episode, success_radius: float = 6.0) -> str:
     """For a failed episode: whether the drone ever flew through the success region (where STOP would have
     succeeded), at which steps, and the model's highest P(stop) there. Telling a stopping failure from a
     navigation failure is the first question about a failure of a model that flies well."""
-    task = episode.task
-    landmark = task.world.landmarks[task.instruction.landmark_index]
-    inside = steps_in_success_region((s.position for s in episode.steps), landmark.position,
-                                     task.world.start_position, task.instruction.side, success_radius)
+    inside = steps_in_region(episode, success_radius)
     if not inside:
         return "never entered"
     spans, first = [], inside[0]
@@ -142,10 +147,7 @@ def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple
     its tick without its number (label None; the step box beside the slider shows it)."""
     steps = list(episode.steps)
     last = max(len(steps) - 1, 1)
-    task = episode.task
-    landmark = task.world.landmarks[task.instruction.landmark_index]
-    inside = steps_in_success_region((s.position for s in steps), landmark.position, task.world.start_position,
-                                     task.instruction.side, success_radius)
+    inside = steps_in_region(episode, success_radius)
     stop = next((s.step for s in steps if s.maps is not None and s.maps.stop_probability > 0.5), None)
     inner = [(t, label) for t, label in ((inside[0] if inside else None, "in region"), (stop, "P(stop)>0.5"))
              if t is not None and 0 < t < last]
