@@ -20,7 +20,8 @@ from typing import Any
 QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
 ACTIVE = (QUEUED, RUNNING)
 STATUSES = (QUEUED, RUNNING, FINISHED, FAILED, CANCELLED)
-SCHEMA_VERSION = 2  # 2: evaluations.mirror_ensemble (a version-1 record gains it, as 0, on opening)
+SCHEMA_VERSION = 3  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
+# record gains the columns on opening: 0 for mirror_ensemble, NULL, "not known", for the region)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -64,6 +65,8 @@ CREATE TABLE IF NOT EXISTS episodes (
     stage TEXT,                     -- attribution stage of a failure (NULL: success, or no maps recorded)
     attribution TEXT,               -- JSON: gsmn.attribution.Attribution.to_dict()
     recording TEXT,                 -- the episode's ModelTrace (.npz), when recorded
+    region_steps TEXT,              -- JSON list: the steps inside the success region (NULL: not known)
+    region_stop_p REAL,             -- the model's highest P(stop) at those steps (NULL: not recorded, or none)
     PRIMARY KEY (evaluation_id, env_id)
 );
 CREATE TABLE IF NOT EXISTS runs (
@@ -133,6 +136,8 @@ class EpisodeRow:
     stage: str | None
     attribution: dict | None
     recording: str | None
+    region_steps: list[int] | None = None  # the steps at which a STOP would have succeeded (schema 3)
+    region_stop_p: float | None = None  # the model's highest P(stop) at those steps (schema 3)
 
 
 @dataclass(frozen=True)
@@ -156,7 +161,7 @@ class Run:
     cancel_requested: bool
 
 
-_JSON = {"env_ids", "command", "summary", "attribution", "settings", "progress", "metrics"}
+_JSON = {"env_ids", "command", "summary", "attribution", "settings", "progress", "metrics", "region_steps"}
 _BOOL = {"ambiguous", "success", "landmark_success", "stopped", "cancel_requested", "mirror_ensemble"}
 
 
@@ -199,6 +204,9 @@ class Database:
                                "--data-dir")
         if version == 1:  # the one column version 2 added; every row recorded before it stays as it was
             self._db.execute("ALTER TABLE evaluations ADD COLUMN mirror_ensemble INTEGER NOT NULL DEFAULT 0")
+        if 1 <= version <= 2:  # the two columns version 3 added, NULL (not known) in the rows recorded before
+            self._db.execute("ALTER TABLE episodes ADD COLUMN region_steps TEXT")
+            self._db.execute("ALTER TABLE episodes ADD COLUMN region_stop_p REAL")
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
 
@@ -259,9 +267,10 @@ class Database:
         self._insert("episodes", {f.name: getattr(episode, f.name) for f in fields(EpisodeRow)}, replace=True)
 
     def episodes(self, evaluation_id: int, failed_only: bool = False, landmark: str | None = None,
-                 side: str | None = None, ambiguous: bool | None = None, stage: str | None = None
-                 ) -> list[EpisodeRow]:
-        """The episodes of an evaluation in the order flown, filtered."""
+                 side: str | None = None, ambiguous: bool | None = None, stage: str | None = None,
+                 entered_region: bool | None = None) -> list[EpisodeRow]:
+        """The episodes of an evaluation in the order flown, filtered (`entered_region`: whether the drone was
+        inside the success region at some step; episodes recorded without that are left out of either choice)."""
         where, params = ["evaluation_id = ?"], [evaluation_id]
         if failed_only:
             where.append("success = 0")
@@ -277,6 +286,8 @@ class Database:
         if stage is not None:
             where.append("stage = ?")
             params.append(stage)
+        if entered_region is not None:
+            where.append("region_steps IS NOT NULL AND region_steps " + ("!=" if entered_region else "=") + " '[]'")
         rows = self._all(f"SELECT * FROM episodes WHERE {' AND '.join(where)} ORDER BY position", tuple(params))
         return [_decode(EpisodeRow, r) for r in rows]
 
@@ -289,6 +300,14 @@ class Database:
         rows = self._all("SELECT coalesce(stage, 'unattributed') AS s, count(*) AS n FROM episodes "
                          "WHERE evaluation_id = ? AND success = 0 GROUP BY s", (evaluation_id,))
         return {r["s"]: r["n"] for r in rows}
+
+    def region_counts(self, evaluation_id: int) -> dict[str, int]:
+        """Failures that flew through the success region without a STOP there ("entered"), that never entered it
+        ("never"), and that were recorded without the region ("unknown"; omitted when none)."""
+        rows = self._all("SELECT CASE WHEN region_steps IS NULL THEN 'unknown' WHEN region_steps = '[]' THEN 'never' "
+                         "ELSE 'entered' END AS r, count(*) AS n FROM episodes WHERE evaluation_id = ? AND success = 0 "
+                         "GROUP BY r", (evaluation_id,))
+        return {"entered": 0, "never": 0, **{r["r"]: r["n"] for r in rows}}
 
     # -- runs --------------------------------------------------------------------------------------------------
     def add_run(self, *, settings: dict, env_ids: list[int] | None, init_checkpoint: str, folder: str,

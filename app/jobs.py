@@ -42,6 +42,7 @@ from pathlib import Path
 from app.commands import Conflict, NotFound, RunnerError
 from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, EpisodeRow, Evaluation, Run
 from gsmn.config import ConfigError, RunConfig, leaf_fields, preset, with_overrides
+from gsmn.task.metrics import steps_in_success_region
 
 log = logging.getLogger("gsmn.dashboard")
 
@@ -583,15 +584,23 @@ class JobManager:
     # -- episodes and their attribution --------------------------------------------------------------------------
     def _record_episode(self, evaluation_id: int, position: int, record: dict, config: RunConfig,
                         checkpoint: str | None, record_dir: Path | None) -> None:
-        from gsmn.attribution import trace_path
+        from gsmn.attribution import load_trace, trace_path
 
         env_id = int(record["env_id"])
         recording = trace_path(record_dir, env_id) if record_dir is not None else None
-        attribution = None
-        if recording is not None and recording.is_file() and checkpoint:
-            attribution = self._attribute(record, config, checkpoint, recording)
-        elif recording is not None and not recording.is_file():
+        trace = None
+        if recording is not None and recording.is_file():
+            try:
+                trace = load_trace(recording)
+            except (OSError, ValueError, KeyError) as e:
+                log.warning("cannot read %s: %s", recording, e)
+        else:
             recording = None
+        attribution = self._attribute(record, config, checkpoint, trace) if trace is not None and checkpoint else None
+        region = region_steps_of(record, config.task.success_radius)
+        stop_p = None
+        if region and trace is not None and max(region) < len(trace.stop_probability):
+            stop_p = float(max(trace.stop_probability[i] for i in region))
         self.db.add_episode(EpisodeRow(
             evaluation_id=evaluation_id, position=position, env_id=env_id, instruction=record["instruction"],
             landmark=record["noun_phrase"], side=record["side"], ambiguous=bool(record["ambiguous"]),
@@ -599,18 +608,13 @@ class JobManager:
             goal_distance=float(record["goal_distance"]), steps=int(record["steps"]), stopped=bool(record["stopped"]),
             final_x=float(record["final_x"]), final_y=float(record["final_y"]),
             stage=attribution.get("stage") if attribution else None, attribution=attribution,
-            recording=str(recording) if recording else None))
+            recording=str(recording) if recording else None, region_steps=region, region_stop_p=stop_p))
 
-    def _attribute(self, record: dict, config: RunConfig, checkpoint: str, recording: Path) -> dict | None:
-        from gsmn.attribution import attribute_record, load_trace
+    def _attribute(self, record: dict, config: RunConfig, checkpoint: str, trace) -> dict | None:
+        from gsmn.attribution import attribute_record
 
         heads = self._heads_of(checkpoint)
         if heads is None:
-            return None
-        try:
-            trace = load_trace(recording)
-        except (OSError, ValueError, KeyError) as e:
-            log.warning("cannot read %s: %s", recording, e)
             return None
         return attribute_record(record, trace, heads, config).to_dict()
 
@@ -633,6 +637,17 @@ class JobManager:
                 listener(kind, job_id)
             except Exception:  # noqa: BLE001 - a viewer bug must not stop the monitor
                 log.error("job listener failed:\n%s", traceback.format_exc())
+
+
+def region_steps_of(record: dict, success_radius: float) -> list[int] | None:
+    """The steps at which an evaluated episode was inside its success region: from a progress line (which carries
+    them), from a `gsmn eval --json` record's trajectory, or None for an older progress line with neither."""
+    if record.get("region_steps") is not None:
+        return [int(i) for i in record["region_steps"]]
+    if not record.get("trajectory"):
+        return None
+    return steps_in_success_region(record["trajectory"], (record["landmark_x"], record["landmark_y"]),
+                                   (record["start_x"], record["start_y"]), record["side"], success_radius)
 
 
 # -- reading a run's folder ---------------------------------------------------------------------------------------

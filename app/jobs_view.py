@@ -25,7 +25,7 @@ from app.commands import RunnerError, RunnerListener, StartEpisode
 from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
 from app.jobs import RUN_PRESETS, JobManager, run_settings
 from app.jobs_api import replay_policy
-from app.panels import error_html
+from app.panels import error_html, region_text
 from app.recording import Episode
 from gsmn.attribution import STAGE_TITLES, STAGES, reported_stages
 from gsmn.evaluation import parse_env_ids
@@ -34,6 +34,7 @@ from gsmn.world.spec import SPLITS
 log = logging.getLogger("gsmn.dashboard")
 
 ROWS = 8  # episode buttons per page of the failure browser
+REGION_CHOICES = {"flew through it": True, "never entered": False}  # the "Success region" filter
 ALL = "all"
 EXPERT_CHOICE = "Expert (oracle)"
 ENV_TRAIN = "train split"
@@ -102,6 +103,9 @@ class JobsView(RunnerListener):
                 self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
                 self.ambiguous = gui.add_dropdown("Ambiguous", (ALL, "ambiguous", "unambiguous"))
                 self.stage = gui.add_dropdown("Attributed to", (ALL, *STAGES))
+                self.region = gui.add_dropdown("Success region", (ALL, *REGION_CHOICES),
+                                               hint="whether the drone was ever where a STOP would have succeeded: "
+                                                    "a failure that flew through it failed on its STOP")
                 self.list_note = gui.add_markdown("")
                 self.row_buttons = [gui.add_button(f"row {k}", visible=False) for k in range(ROWS)]
                 self.pager = gui.add_button_group("Page", ("Previous", "Next"))
@@ -147,7 +151,7 @@ class JobsView(RunnerListener):
         self.eval_buttons.on_click(lambda e: self._events.put(("eval", e.target.value)))
         self.import_button.on_click(lambda _: self._events.put(("import", self.import_path.value.strip())))
         self.evaluation.on_update(lambda e: e.client is not None and self._events.put(("browse",)))
-        for control in (self.failed_only, self.landmark, self.side, self.ambiguous, self.stage):
+        for control in (self.failed_only, self.landmark, self.side, self.ambiguous, self.stage, self.region):
             control.on_update(lambda e: e.client is not None and self._events.put(("filter",)))
         for k, button in enumerate(self.row_buttons):
             button.on_click(lambda _, k=k: self._events.put(("row", k)))
@@ -276,13 +280,14 @@ class JobsView(RunnerListener):
             keep = self.landmark.value if self.landmark.value in landmarks and not reset_filters else ALL
             self.landmark.options = landmarks
             self.landmark.value = keep
-        self.summary.content = summary_html(e, self.jobs.db.stage_counts(e.id))
+        self.summary.content = summary_html(e, self.jobs.db.stage_counts(e.id), self.jobs.db.region_counts(e.id))
         ambiguous = {"ambiguous": True, "unambiguous": False}.get(self.ambiguous.value)
         self.rows = self.jobs.db.episodes(
             e.id, failed_only=bool(self.failed_only.value),
             landmark=None if self.landmark.value == ALL else self.landmark.value,
             side=None if self.side.value == ALL else self.side.value, ambiguous=ambiguous,
-            stage=None if self.stage.value == ALL else self.stage.value)
+            stage=None if self.stage.value == ALL else self.stage.value,
+            entered_region=REGION_CHOICES.get(self.region.value))
         self._show_rows()
         failures = [r.env_id for r in self.rows if not r.success]
         label = f"failures selected in the browser ({len(failures)})"
@@ -524,7 +529,7 @@ def evaluation_label(e: Evaluation) -> str:
     return f"#{e.id} {what}: {e.label}, {_pct(s.get('success'))} success{status}"
 
 
-def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
+def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] | None = None) -> str:
     s = e.summary or {}
     failures = sum(stages.values())
     bars = []
@@ -544,7 +549,19 @@ def summary_html(e: Evaluation, stages: dict[str, int]) -> str:
             f"<div><b>{e.done}/{e.total}</b> episodes · success <b>{_pct(s.get('success'))}</b> · landmark "
             f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
             f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
-            f"{''.join(bars)}</div>")
+            f"{''.join(bars)}{region_summary(regions)}</div>")
+
+
+def region_summary(regions: dict[str, int] | None) -> str:
+    """One line under the attribution bars: how many failures flew through the success region without a STOP there
+    (stopping failures) and how many never entered it (navigation failures)."""
+    if not regions or not regions.get("entered", 0) + regions.get("never", 0):
+        return ""
+    unknown = regions.get("unknown", 0)
+    rest = f"; {unknown} recorded without it" if unknown else ""
+    return (f'<div class="gsmn-regions" style="font-size:12px;margin-top:4px" data-entered="{regions["entered"]}" '
+            f'data-never="{regions["never"]}">Success region: <b>{regions["entered"]}</b> flew through it without a '
+            f'STOP there, <b>{regions["never"]}</b> never entered it{rest}</div>')
 
 
 _STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
@@ -563,6 +580,8 @@ def episode_html(r: EpisodeRow, note: str) -> str:
             ("landmark success", "yes" if r.landmark_success else "no"),
             ("distance to goal", f"{r.goal_distance:.1f} m"), ("ambiguous", "yes" if r.ambiguous else "no"),
             ("ended", f"said STOP after {r.steps} steps" if r.stopped else f"horizon after {r.steps} steps")]
+    if not r.success and r.region_steps is not None:
+        rows.append(("success region", region_text(r.region_steps, r.region_stop_p, ("<b>", "</b>"))))
     if a:
         rows += [("perceived", ("yes" if a["perceived"] else "no") + (
                     f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"

@@ -104,6 +104,15 @@ def region_passage(episode: Episode, success_radius: float = 6.0) -> str:
     succeeded), at which steps, and the model's highest P(stop) there. Telling a stopping failure from a
     navigation failure is the first question about a failure of a model that flies well."""
     inside = steps_in_region(episode, success_radius)
+    steps = episode.steps
+    probabilities = [steps[i].maps.stop_probability for i in inside if steps[i].maps is not None]
+    return region_text(inside, max(probabilities) if probabilities else None)
+
+
+def region_text(inside: list[int], highest_stop: float | None = None, bold: tuple[str, str] = ("**", "**")) -> str:
+    """The success-region row's text (live view and failure browser alike): "never entered", or the spans of
+    steps inside the region and the model's highest P(stop) there when known (in `bold`: Markdown's by default,
+    ("<b>", "</b>") for HTML)."""
     if not inside:
         return "never entered"
     spans, first = [], inside[0]
@@ -111,9 +120,7 @@ def region_passage(episode: Episode, success_radius: float = 6.0) -> str:
         if b != a + 1:
             spans.append(f"{first}" if first == a else f"{first}-{a}")
             first = b
-    steps = episode.steps
-    probabilities = [steps[i].maps.stop_probability for i in inside if steps[i].maps is not None]
-    highest = f"; highest P(stop) there **{max(probabilities):.2f}**" if probabilities else ""
+    highest = f"; highest P(stop) there {bold[0]}{highest_stop:.2f}{bold[1]}" if highest_stop is not None else ""
     return (f"flew through it at step{'s' if len(inside) > 1 else ''} {', '.join(spans)} without a STOP there"
             f"{highest}")
 

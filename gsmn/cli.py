@@ -147,7 +147,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
-    progress = ProgressLog(Path(args.progress), len(env_ids)) if args.progress else None
+    progress = (ProgressLog(Path(args.progress), len(env_ids), config.task.success_radius) if args.progress
+                else None)
     t0 = time.perf_counter()
     with _progress(len(env_ids), args.system) as bar:
         def on_episode(record) -> None:

@@ -28,7 +28,7 @@ from gsmn.task.baselines import (
     RandomLandmarkPolicy,
     RandomPointPolicy,
 )
-from gsmn.task.metrics import Summary, summarize
+from gsmn.task.metrics import Summary, steps_in_success_region, summarize
 from gsmn.task.rollout import EpisodeRecord, Policy, rollout, task_for_env
 from gsmn.world.env import Env
 from gsmn.world.spec import split_env_ids
@@ -261,12 +261,13 @@ def write_json(path: Path, results: dict) -> None:
 
 
 class ProgressLog:
-    """One JSON line per finished episode (the record without its trajectory but with its final heading, and how
-    many are done of how many), flushed at once: what a monitor such as the dashboard reads while an evaluation
-    runs."""
+    """One JSON line per finished episode (the record without its trajectory but with its final heading, the steps
+    at which it was inside the success region, and how many are done of how many), flushed at once: what a
+    monitor such as the dashboard reads while an evaluation runs."""
 
-    def __init__(self, path: Path, total: int):
+    def __init__(self, path: Path, total: int, success_radius: float = 6.0):
         self.path, self.total, self.done = Path(path), total, 0
+        self.success_radius = success_radius
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.path.write_text("")
 
@@ -274,5 +275,8 @@ class ProgressLog:
         self.done += 1
         line = {k: v for k, v in record.to_dict().items() if k not in ("trajectory", "actions")}
         line["final_yaw"] = record.trajectory[-1][3]  # for failure attribution (which way a control failure missed)
+        line["region_steps"] = steps_in_success_region(  # did a failure fly through the region (its STOP failed)?
+            record.trajectory, (record.landmark_x, record.landmark_y), (record.start_x, record.start_y), record.side,
+            self.success_radius)
         with self.path.open("a") as f:
             f.write(json.dumps({"done": self.done, "total": self.total, **line}) + "\n")

@@ -153,9 +153,21 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown system" in bad.stderr
     # scripts/results_table.py makes the Table 1 markdown from such files, and refuses rows on other environments.
-    oracle = tmp_path / "oracle.json"
+    oracle, progress = tmp_path / "oracle.json", tmp_path / "oracle.progress.jsonl"
     subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "70,71,72", "--json",
-                    str(oracle), "--preset", "tiny"], check=True, capture_output=True)
+                    str(oracle), "--preset", "tiny", "--progress", str(progress)], check=True, capture_output=True)
+    # the progress lines (what the dashboard reads) carry the steps inside the success region, without trajectories
+    from app.jobs import region_steps_of
+
+    lines = [json.loads(x) for x in progress.read_text().splitlines()]
+    records = {e["env_id"]: e for e in json.loads(oracle.read_text())["episodes"]}
+    assert [x["done"] for x in lines] == [1, 2, 3] and all("trajectory" not in x for x in lines)
+    assert any(r["success"] for r in records.values())
+    for line in lines:
+        record = records[line["env_id"]]
+        assert line["region_steps"] == region_steps_of(record, TINY.task.success_radius)
+        if record["success"]:  # it said STOP inside the region: the last observation is one of its steps
+            assert line["region_steps"][-1] == len(record["trajectory"]) - 1
     script = Path(__file__).resolve().parents[1] / "scripts" / "results_table.py"
     table = subprocess.run([sys.executable, str(script), str(out), str(oracle), "--label", "oracle=The expert"],
                            capture_output=True, text=True)

@@ -18,6 +18,7 @@ import playwright.sync_api as playwright_api
 import pytest
 
 from app.fixtures import make_untrained_checkpoint
+from app.panels import region_text, steps_in_region
 
 CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -110,6 +111,10 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     choose("Landmark", first.landmark, sum(r.landmark == first.landmark for r in rows))
     assert all(first.landmark in buttons.nth(k).inner_text() for k in range(buttons.count()))
     choose("Landmark", "all", len(rows))
+    assert all(r.region_steps is not None for r in rows), "the evaluation's progress lines carry the region"
+    choose("Success region", "never entered", sum(not r.region_steps for r in rows))
+    choose("Success region", "flew through it", sum(bool(r.region_steps) for r in rows))
+    choose("Success region", "all", len(rows))
 
     # pick a failure: it flies again in the live view, with its maps, and its attribution shows
     before = dashboard.runner.episodes.all()
@@ -121,6 +126,10 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     assert "reproduces the evaluation" in replayed["text"], replayed["text"]
     episode = next(e for e in dashboard.runner.episodes.all() if e not in before)
     assert episode.env_id == first.env_id and episode.result.steps == first.steps
+    # the steps inside the success region the evaluation's process recorded are the live replay's, and shown
+    assert first.region_steps == steps_in_region(episode, dashboard.runner.config.task.success_radius)
+    assert f"success region\t{region_text(first.region_steps, first.region_stop_p, ('', ''))}" in replayed["text"]
+    assert "Success region:" in wait_js(page, EVALUATION, lambda v: v is not None)["text"]
     page.get_by_role("tab", name="Camera and maps").click()
     maps = wait_js(page, MAPS, lambda v: v and v["episode"] == str(episode.id), what="the replay's maps")
     assert maps["step"] >= 0

@@ -19,12 +19,13 @@ from app.jobs import (
     _pid_runs,
     config_args,
     evaluation_system,
+    region_steps_of,
     run_config,
     run_progress,
     run_settings,
     summarize_rows,
 )
-from app.jobs_view import compare_html, curve_data, episode_label, error_summary, summary_html
+from app.jobs_view import compare_html, curve_data, episode_html, episode_label, error_summary, summary_html
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
 
@@ -74,19 +75,33 @@ def test_the_record_keeps_evaluations_episodes_and_runs_across_reopening(tmp_pat
         assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
+def old_schema(version: int) -> str:
+    """The schema a record of an earlier version was written with: today's without the columns added since."""
+    import app.db
+
+    schema = app.db.SCHEMA
+    region = [x for x in schema.splitlines() if x.strip().startswith(("region_steps", "region_stop_p"))]
+    assert len(region) == 2
+    for line in region:
+        schema = schema.replace(line + "\n", "", 1)
+    if version == 1:
+        line = [x for x in schema.splitlines() if x.strip().startswith("mirror_ensemble")]
+        assert len(line) == 1
+        schema = schema.replace("cancel_requested INTEGER NOT NULL DEFAULT 0,\n" + line[0] + "\n",
+                                "cancel_requested INTEGER NOT NULL DEFAULT 0\n", 1)
+        assert "mirror_ensemble" not in schema
+    assert "region_" not in schema
+    return schema
+
+
 def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows(tmp_path):
     """A record written before evaluations had `mirror_ensemble` (schema 1) opens with every row as it was, marked
     as flown plainly, and takes mirror-ensemble evaluations from then on."""
     import app.db
 
-    line = [x for x in app.db.SCHEMA.splitlines() if x.strip().startswith("mirror_ensemble")]
-    assert len(line) == 1
-    old_schema = app.db.SCHEMA.replace("cancel_requested INTEGER NOT NULL DEFAULT 0,\n" + line[0] + "\n",
-                                       "cancel_requested INTEGER NOT NULL DEFAULT 0\n", 1)
-    assert "mirror_ensemble" not in old_schema
     path = tmp_path / "old.sqlite"
     with sqlite3.connect(path) as old:
-        old.executescript(old_schema)
+        old.executescript(old_schema(1))
         old.execute("INSERT INTO evaluations (status, created, system, checkpoint, env_ids, label, source, total) "
                     "VALUES ('finished', 1.0, 'gsmn', '/c', '[70, 71]', 'before the column', 'dashboard', 2)")
         old.execute("PRAGMA user_version=1")
@@ -98,8 +113,77 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     db.close()
     db = Database(path)
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 2
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 3
     db.close()
+
+
+def test_a_record_of_schema_version_2_gains_the_region_columns_as_not_known(tmp_path):
+    """Episodes recorded before the success region was (schema 2) keep every value, show no region row, are left
+    out of both choices of the region filter and are counted apart; episodes recorded after carry it."""
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as old:
+        old.executescript(old_schema(2))
+        old.execute("INSERT INTO evaluations (status, created, system, checkpoint, env_ids, label, source, total, "
+                    "mirror_ensemble) VALUES ('finished', 1.0, 'gsmn', '/c', '[70, 71]', 'old', 'dashboard', 2, 0)")
+        old.execute("INSERT INTO episodes (evaluation_id, position, env_id, instruction, landmark, side, ambiguous, "
+                    "success, landmark_success, goal_distance, steps, stopped, final_x, final_y) VALUES "
+                    "(1, 0, 70, 'go to the left side of the box', 'box', 'left', 0, 0, 1, 4.5, 60, 1, 3.0, 4.0)")
+        old.execute("PRAGMA user_version=2")
+    old.close()
+    db = Database(path)
+    (row,) = db.episodes(1)
+    assert (row.env_id, row.goal_distance, row.steps, row.region_steps, row.region_stop_p) == (70, 4.5, 60, None, None)
+    assert db.episodes(1, entered_region=True) == [] and db.episodes(1, entered_region=False) == []
+    assert db.region_counts(1) == {"entered": 0, "never": 0, "unknown": 1}
+    assert "success region" not in episode_html(row, "")
+    db.add_episode(episode(1, 1, 71, region_steps=[30, 31, 32], region_stop_p=0.25))
+    db.close()
+    db = Database(path)
+    assert db.episode(1, 71).region_steps == [30, 31, 32] and db.episode(1, 71).region_stop_p == 0.25
+    assert [r.env_id for r in db.episodes(1, entered_region=True)] == [71]
+    db.close()
+
+
+def test_failures_are_told_apart_by_whether_they_flew_through_the_success_region(tmp_path):
+    """The record keeps the steps inside the success region; the browser filters on them, counts them under the
+    attribution bars and names them in an episode's details, the way the live view's result does."""
+    db = Database(tmp_path / "gsmn.sqlite")
+    eid = db.add_evaluation(system="gsmn", checkpoint="/c", env_ids=[70, 71, 72, 73], label="four")
+    plain = {"stage": None, "attribution": None}
+    db.add_episode(episode(eid, 0, 70, region_steps=[], **plain))
+    db.add_episode(episode(eid, 1, 71, region_steps=[12, 13, 14, 20], region_stop_p=0.31, **plain))
+    db.add_episode(episode(eid, 2, 72, success=True, region_steps=[40, 41], **plain))
+    db.add_episode(episode(eid, 3, 73, region_steps=[5], **plain))  # a baseline's: no recorded P(stop)
+    assert [r.env_id for r in db.episodes(eid, entered_region=True)] == [71, 72, 73]
+    assert [r.env_id for r in db.episodes(eid, failed_only=True, entered_region=True)] == [71, 73]
+    assert [r.env_id for r in db.episodes(eid, entered_region=False)] == [70]
+    assert db.region_counts(eid) == {"entered": 2, "never": 1}
+    passed = episode_html(db.episode(eid, 71), "")
+    assert "success region" in passed and "flew through it at steps 12-14, 20 without a STOP there" in passed
+    assert "highest P(stop) there <b>0.31</b>" in passed
+    assert "flew through it at step 5 without a STOP there</td>" in episode_html(db.episode(eid, 73), "")
+    assert "never entered" in episode_html(db.episode(eid, 70), "")
+    assert "success region" not in episode_html(db.episode(eid, 72), "")  # a success needs no such row
+    ev = db.evaluation(eid)
+    line = summary_html(ev, db.stage_counts(eid), db.region_counts(eid))
+    assert "<b>2</b> flew through it without a STOP there, <b>1</b> never entered it" in line
+    assert "recorded without" not in line and "gsmn-regions" not in summary_html(ev, db.stage_counts(eid))
+    assert "1 recorded without it" in summary_html(ev, {}, {"entered": 1, "never": 0, "unknown": 1})
+    db.close()
+
+
+def test_the_region_steps_come_from_a_progress_line_or_a_trajectory():
+    """A progress line carries them (gsmn eval --progress); a `gsmn eval --json` record is measured from its
+    trajectory with the metric's own function; an older progress line has neither."""
+    from gsmn.task.metrics import steps_in_success_region
+
+    record = {"landmark_x": 10.0, "landmark_y": 10.0, "start_x": 0.0, "start_y": 0.0, "side": "front",
+              "trajectory": [[x, x, 1.0, 0.0] for x in (0.0, 4.0, 6.0, 7.0, 9.0, 12.0)]}
+    expected = steps_in_success_region([p[:2] for p in record["trajectory"]], (10, 10), (0, 0), "front", 6.0)
+    assert expected == [2, 3, 4] and region_steps_of(record, 6.0) == expected  # front: not (12, 12), beyond it
+    assert region_steps_of(record, 2.0) == [4]
+    assert region_steps_of({"region_steps": [3, 4]}, 6.0) == [3, 4]
+    assert region_steps_of({"env_id": 70}, 6.0) is None
 
 
 def test_an_evaluation_flies_the_checkpoints_own_kind_unless_asked_for_another(tmp_path):
