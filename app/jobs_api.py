@@ -66,6 +66,8 @@ class EvaluationModel(BaseModel):
     summary: dict | None = Field(description="success %, landmark success %, mean and median distance (m); "
                                  "'pruned': the same on unambiguous instructions; of the episodes done so far")
     stages: dict[str, int] = Field(description="failures per attribution stage")
+    regions: dict[str, int] = Field(description="failures that flew through the success region without a STOP there "
+                                    "('entered'), that never entered it ('never'), recorded without it ('unknown')")
     error: str | None
     created: float
     started: float | None
@@ -89,6 +91,9 @@ class EpisodeModel(BaseModel):
     final_y: float
     stage: str | None = Field(description="attribution of a failure: perception, grounding, goal or control")
     attribution: dict | None = Field(description="the evidence (gsmn.attribution.Attribution)")
+    region_steps: list[int] | None = Field(None, description="the steps at which a STOP would have succeeded "
+                                           "(inside the success region); null: not recorded")
+    region_stop_p: float | None = Field(None, description="the model's highest P(stop) at those steps, when recorded")
 
 
 class Replayed(BaseModel):
@@ -153,8 +158,8 @@ def evaluation_model(jobs: JobManager, e: Evaluation) -> EvaluationModel:
                            env_ids=e.env_ids, baseline_id=e.baseline_id, run_id=e.run_id, source=e.source,
                            mirror_ensemble=e.mirror_ensemble, done=e.done, total=e.total,
                            fraction=e.done / max(1, e.total), summary=clean(e.summary),
-                           stages=jobs.db.stage_counts(e.id), error=e.error, created=e.created, started=e.started,
-                           finished=e.finished)
+                           stages=jobs.db.stage_counts(e.id), regions=jobs.db.region_counts(e.id), error=e.error,
+                           created=e.created, started=e.started, finished=e.finished)
 
 
 def episode_model(e: EpisodeRow) -> EpisodeModel:
@@ -208,11 +213,11 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
     def list_evaluation_episodes(evaluation_id: int, failed_only: bool = False, landmark: str | None = None,
                                  side: Literal["left", "right", "front", "back"] | None = None,
                                  ambiguous: bool | None = None,
-                                 stage: Literal["perception", "grounding", "goal", "control"] | None = None
-                                 ) -> list[EpisodeModel]:
+                                 stage: Literal["perception", "grounding", "goal", "control"] | None = None,
+                                 entered_region: bool | None = None) -> list[EpisodeModel]:
         jobs.evaluation(evaluation_id)
         return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
-                                                             stage)]
+                                                             stage, entered_region)]
 
     @app.post("/api/evaluations/{evaluation_id}/replay", response_model=Replayed, status_code=201,
               summary="Fly an episode of the evaluation again in the live view, with its maps")

@@ -8,6 +8,12 @@ mid-flight beside the failure browser), launches a tiny DAggerFM run on the fail
 its progress and curves, taken after its second iteration), and reruns the episodes with its checkpoint
 (docs/dashboard_before_after.png). Without --checkpoint it uses an untrained GSMN biased to fly, whose maps and
 attributions mean nothing: the pictures show the tool, not a result.
+
+    .venv/bin/python scripts/jobs_screenshots.py --checkpoint checkpoints/gsmn --regions runs/eval13_k_plain.json \
+        --record runs/eval13_k_plain_rec
+
+instead loads a `gsmn eval --json` file made with that checkpoint (and its --record folder), filters its failures
+to those that flew through the success region and replays the first (docs/dashboard_failure_regions.png).
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=8, help="test environments to evaluate")
     ap.add_argument("--iterations", type=int, default=4, help="iterations of the tiny run")
     ap.add_argument("--out", default=str(ROOT / "docs"))
+    ap.add_argument("--regions", default=None, help="a `gsmn eval --json` file: take the success-region picture only")
+    ap.add_argument("--record", default=None, help="that evaluation's --record folder (attribution and P(stop))")
     a = ap.parse_args(argv)
 
     import playwright.sync_api as playwright_api
@@ -65,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
             page.set_default_timeout(120_000)
             page.goto(dashboard.urls.page)
             page.get_by_role("button", name="Run", exact=True).wait_for()
+            if a.regions:
+                regions_shot(page, dashboard, a.regions, a.record, out)
+                browser.close()
+                return 0
 
             # evaluate from the page, then replay a failure
             page.get_by_role("tab", name="Failures").click()
@@ -123,6 +135,33 @@ def main(argv: list[str] | None = None) -> int:
         dashboard.close()
         shutil.rmtree(tmp, ignore_errors=True)
     return 0
+
+
+def regions_shot(page, dashboard, results: str, record: str | None, out: Path) -> None:
+    """The failure browser on an imported evaluation, filtered to the failures that flew through the success
+    region, with the first of them replaying in the live view."""
+    from app.commands import SetSpeed
+
+    e = dashboard.jobs.import_evaluation(results, record)
+    page.set_viewport_size({"width": 1500, "height": 1300})  # the counts under the bars and the details, both
+    page.get_by_role("tab", name="Failures").click()
+    page.get_by_text(f"{e.total}/{e.total} episodes").first.wait_for()
+    field(page, "Success region").click()
+    page.get_by_role("option", name="flew through it", exact=True).click()
+    (first, *_) = dashboard.jobs.db.episodes(e.id, failed_only=True, entered_region=True)
+    button = page.get_by_role("button", name=re.compile(rf"^▶ {first.env_id} "))
+    button.wait_for()
+    dashboard.runner.call(SetSpeed(5.0))
+    button.click()
+    wait(lambda: dashboard.runner.live is not None and len(dashboard.runner.live.steps) > max(first.region_steps),
+         what="the replay past the success region")
+    page.locator(".gsmn-episode").scroll_into_view_if_needed()
+    page.wait_for_timeout(500)
+    dismiss_notifications(page)
+    page.mouse.move(700, 900)
+    page.screenshot(path=str(out / "dashboard_failure_regions.png"))
+    print(f"wrote {out / 'dashboard_failure_regions.png'} (evaluation {e.id}, environment {first.env_id})")
+    dashboard.runner.call(SetSpeed(None))
 
 
 if __name__ == "__main__":

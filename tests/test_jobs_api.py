@@ -140,6 +140,13 @@ def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluati
         assert e["stage"] in STAGES and e["attribution"]["stage"] == e["stage"] and e["attribution"]["reason"]
         assert e["attribution"]["peak_bearing"] in BEARINGS  # the final heading reached the dashboard's record
     assert sum(evaluation["stages"].values()) == len(failures)
+    # the success region: its steps from the evaluation's progress lines, P(stop) there from the recordings
+    assert all(isinstance(e["region_steps"], list) for e in episodes)
+    assert evaluation["regions"] == {"entered": sum(bool(e["region_steps"]) for e in failures),
+                                     "never": sum(not e["region_steps"] for e in failures)}
+    assert all((e["region_stop_p"] is None) == (not e["region_steps"]) for e in episodes)
+    never = client.get(f"/api/evaluations/{evaluation['id']}/episodes", params={"entered_region": False}).json()
+    assert [e["env_id"] for e in never] == [e["env_id"] for e in episodes if not e["region_steps"]]
     for key in ("instruction", "landmark", "side", "ambiguous", "landmark_success", "goal_distance"):
         assert key in episodes[0]
     # the failure browser's filters
@@ -165,6 +172,10 @@ def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluati
     assert loaded["summary"] == evaluation["summary"] and loaded["stages"] == evaluation["stages"]
     again = client.get(f"/api/evaluations/{loaded['id']}/episodes").json()
     assert [(e["env_id"], e["stage"]) for e in again] == [(e["env_id"], e["stage"]) for e in episodes]
+    # measured again from the JSON's trajectories: the same steps as the progress lines gave
+    keys = ("env_id", "region_steps", "region_stop_p")
+    assert [[e[k] for k in keys] for e in again] == [[e[k] for k in keys] for e in episodes]
+    assert loaded["regions"] == evaluation["regions"]
     bad = client.post("/api/evaluations/import", json={"path": str(folder / "config.json")})
     assert bad.status_code == 422 and "not a `gsmn eval --json` file" in bad.json()["detail"]
 
