@@ -95,12 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             page.get_by_role("button", name=re.compile(rf"^▶ {pick.env_id} ")).click()
             wait(lambda: dashboard.runner.live is not None and len(dashboard.runner.live.steps) >= min(
                 45, pick.steps // 2), what="the replay mid-flight")
-            page.locator(".gsmn-episode").scroll_into_view_if_needed()
-            page.wait_for_timeout(500)
-            dismiss_notifications(page)
-            page.mouse.move(700, 900)
-            page.screenshot(path=str(out / "dashboard_failures.png"))
-            print(f"wrote {out / 'dashboard_failures.png'}")
+            shoot_details(page, out / "dashboard_failures.png")
             dashboard.runner.call(SetSpeed(None))
 
             # a tiny fine-tuning run on the failures
@@ -137,6 +132,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def shoot_details(page, path: Path, what: str = "") -> None:
+    """Capture the page with the episode's details under the failure browser in view."""
+    page.locator(".gsmn-episode").scroll_into_view_if_needed()
+    page.wait_for_timeout(500)
+    dismiss_notifications(page)
+    page.mouse.move(700, 900)
+    page.screenshot(path=str(path))
+    print(f"wrote {path}" + (f" ({what})" if what else ""))
+
+
 def regions_shot(page, dashboard, results: str, record: str | None, out: Path) -> None:
     """The failure browser on an imported evaluation, filtered to the failures that flew through the success
     region, with the first of them replaying in the live view."""
@@ -155,12 +160,7 @@ def regions_shot(page, dashboard, results: str, record: str | None, out: Path) -
     button.click()
     wait(lambda: dashboard.runner.live is not None and len(dashboard.runner.live.steps) > max(first.region_steps),
          what="the replay past the success region")
-    page.locator(".gsmn-episode").scroll_into_view_if_needed()
-    page.wait_for_timeout(500)
-    dismiss_notifications(page)
-    page.mouse.move(700, 900)
-    page.screenshot(path=str(out / "dashboard_failure_regions.png"))
-    print(f"wrote {out / 'dashboard_failure_regions.png'} (evaluation {e.id}, environment {first.env_id})")
+    shoot_details(page, out / "dashboard_failure_regions.png", f"evaluation {e.id}, environment {first.env_id}")
     dashboard.runner.call(SetSpeed(None))
 
 
