@@ -222,3 +222,44 @@ def test_each_shipped_checkpoint_flies_as_its_own_system(system):
         record = rollout(env, policy, task_for_env(70, config), horizon=3)
     assert record.system == system and record.actions
     assert all(math.isfinite(v) for action in record.actions for v in action[:2])
+
+
+def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path):
+    """scripts/stop_threshold.py: at 0.5 it reproduces the recorded outcomes; at a lower threshold each episode
+    stops at the first step whose recorded P(stop) is above it, and is scored there; ensembles are refused."""
+    from app.fixtures import make_untrained_checkpoint
+    from gsmn.attribution import load_trace, trace_path
+    from gsmn.config import with_overrides
+    from gsmn.task.metrics import success
+
+    config = with_overrides(TINY, {"task.horizon": "20"})
+    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    records = evaluate("gsmn", [70, 71], config, folder, record_dir=tmp_path / "rec")
+    results = tmp_path / "eval.json"
+    results.write_text(json.dumps(results_dict("gsmn", str(folder), records, config, 1.0, 1)))
+    p = {r.env_id: load_trace(trace_path(tmp_path / "rec", r.env_id)).stop_probability for r in records}
+    tau = float(np.median(np.concatenate(list(p.values()))))  # about half the steps are above it
+    assert 0 < tau < 0.5
+    script = Path(__file__).resolve().parents[1] / "scripts" / "stop_threshold.py"
+    run = subprocess.run([sys.executable, str(script), str(results), str(tmp_path / "rec"), "--taus", "0.5", str(tau)],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in run.stdout.splitlines()
+            if line.startswith("| 0")}
+    assert rows["0.5"][1] == f"{50.0 * sum(r.success for r in records):.1f} % ({sum(r.success for r in records)})"
+    assert rows["0.5"][3] == str(sum(r.stopped for r in records))
+    expected_ok, expected_stops = 0, 0
+    for r in records:
+        above = np.flatnonzero(p[r.env_id] > tau)
+        t = int(above[0]) if above.size else len(r.trajectory) - 1
+        expected_stops += bool(above.size) or r.stopped
+        expected_ok += success(r.trajectory[t][:2], (r.landmark_x, r.landmark_y), (r.start_x, r.start_y), r.side,
+                               config.task.success_radius)
+    assert rows[f"{tau:g}"][1].endswith(f"({expected_ok})") and rows[f"{tau:g}"][3] == str(expected_stops)
+    assert expected_stops == 2  # both stop early at this threshold
+    mirrored = json.loads(results.read_text())
+    mirrored["mirror_ensemble"] = True
+    (tmp_path / "mirrored.json").write_text(json.dumps(mirrored))
+    refused = subprocess.run([sys.executable, str(script), str(tmp_path / "mirrored.json"), str(tmp_path / "rec")],
+                             capture_output=True, text=True)
+    assert refused.returncode == 2 and "one network's P(stop)" in refused.stderr

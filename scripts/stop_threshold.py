@@ -1,0 +1,90 @@
+"""What a plainly flown evaluation would have scored with a lower STOP threshold, computed exactly offline.
+
+    python scripts/stop_threshold.py runs/eval19_k_dev.json runs/eval19_k_dev_rec --taus 0.5 0.4 0.3 0.2
+
+The paper's policy says STOP when P(stop) > 0.5. With a threshold tau <= 0.5 the policy would say STOP at the
+first step where P(stop) > tau, which is never later than where it stopped; up to that step it flies exactly as
+recorded. So a `gsmn eval --json` file (its trajectories) and its `--record` folder (the model's P(stop) at every
+step) give each episode's outcome at any such tau, without flying it again. The recorded actions are checked
+against the recorded P(stop) at 0.5 first, so a file flown otherwise (a mirror ensemble, whose recording holds one
+copy's P(stop)) is refused. Prints success, landmark success and, against 0.5, episodes fixed and broken.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from gsmn.attribution import load_trace, trace_path  # noqa: E402
+from gsmn.task.metrics import landmark_success, success  # noqa: E402
+
+
+def stop_step(stop_probability: np.ndarray, tau: float, last: int) -> int:
+    """The step at which a policy with threshold tau says STOP: the first with P(stop) > tau, or the recorded end."""
+    above = np.flatnonzero(stop_probability[:last + 1] > tau)
+    return int(above[0]) if above.size else last
+
+
+def outcome(episode: dict, stop_probability: np.ndarray, tau: float, radius: float) -> tuple[bool, bool, bool]:
+    """(success, landmark success, said STOP) of the episode flown with threshold tau <= 0.5."""
+    last = len(episode["trajectory"]) - 1
+    t = stop_step(stop_probability, tau, last)
+    xy = episode["trajectory"][t][:2]
+    landmark, start = (episode["landmark_x"], episode["landmark_y"]), (episode["start_x"], episode["start_y"])
+    stopped = t < last or episode["stopped"]
+    return success(xy, landmark, start, episode["side"], radius), landmark_success(xy, landmark, radius), stopped
+
+
+def sign_test(a: int, b: int) -> float:
+    k, n = min(a, b), a + b
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", help="a `gsmn eval --json` file, flown plainly")
+    parser.add_argument("record", help="its --record folder")
+    parser.add_argument("--taus", type=float, nargs="+", default=[0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.15, 0.1])
+    parser.add_argument("--radius", type=float, default=None, help="default: the evaluation's own success radius")
+    args = parser.parse_args()
+    if any(not 0 < tau <= 0.5 for tau in args.taus):
+        parser.error("every tau must be in (0, 0.5]: a higher one could stop later than the recorded flight")
+    results = json.loads(Path(args.results).read_text())
+    if results.get("mirror_ensemble") or results.get("ensemble_with"):
+        parser.error("an ensemble's recording holds one network's P(stop), not the one it acted on")
+    radius = args.radius or results["config"]["task"]["success_radius"]
+    episodes = results["episodes"]
+    probabilities = {}
+    for e in episodes:
+        p = load_trace(trace_path(args.record, e["env_id"])).stop_probability
+        said = [bool(a[2]) for a in e["actions"]]
+        if len(p) != len(said) or any((q > 0.5) != s for q, s in zip(p, said, strict=True) if abs(q - 0.5) > 1e-4):
+            parser.error(f"environment {e['env_id']}: the recorded P(stop) does not give the recorded STOPs")
+        probabilities[e["env_id"]] = p
+    base = {e["env_id"]: outcome(e, probabilities[e["env_id"]], 0.5, radius)[0] for e in episodes}
+    mismatched = [e["env_id"] for e in episodes if base[e["env_id"]] != e["success"]]
+    if mismatched:
+        parser.error(f"at 0.5 the recorded outcome is not reproduced in environments {mismatched[:5]}")
+    n = len(episodes)
+    print(f"{n} episodes of {args.results}; success radius {radius:g} m")
+    print("| tau | success | landmark success | said STOP | fixed vs 0.5 | broken vs 0.5 | sign test p |")
+    print("|---|---|---|---|---|---|---|")
+    for tau in args.taus:
+        rows = {e["env_id"]: outcome(e, probabilities[e["env_id"]], tau, radius) for e in episodes}
+        ok = sum(r[0] for r in rows.values())
+        fixed = sum(rows[i][0] and not base[i] for i in rows)
+        broken = sum(base[i] and not rows[i][0] for i in rows)
+        print(f"| {tau:g} | {100 * ok / n:.1f} % ({ok}) | {100 * sum(r[1] for r in rows.values()) / n:.1f} % | "
+              f"{sum(r[2] for r in rows.values())} | {fixed} | {broken} | {sign_test(fixed, broken):.2g} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
