@@ -42,7 +42,7 @@ from pathlib import Path
 from app.commands import Conflict, NotFound, RunnerError
 from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, EpisodeRow, Evaluation, Run
 from gsmn.config import ConfigError, RunConfig, leaf_fields, preset, with_overrides
-from gsmn.task.metrics import steps_in_success_region
+from gsmn.task.metrics import record_region_steps
 
 log = logging.getLogger("gsmn.dashboard")
 
@@ -646,8 +646,7 @@ def region_steps_of(record: dict, success_radius: float) -> list[int] | None:
         return [int(i) for i in record["region_steps"]]
     if not record.get("trajectory"):
         return None
-    return steps_in_success_region(record["trajectory"], (record["landmark_x"], record["landmark_y"]),
-                                   (record["start_x"], record["start_y"]), record["side"], success_radius)
+    return record_region_steps(record, success_radius)
 
 
 # -- reading a run's folder ---------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from gsmn.task.baselines import (
     RandomLandmarkPolicy,
     RandomPointPolicy,
 )
-from gsmn.task.metrics import Summary, steps_in_success_region, summarize
+from gsmn.task.metrics import Summary, record_region_steps, summarize
 from gsmn.task.rollout import EpisodeRecord, Policy, rollout, task_for_env
 from gsmn.world.env import Env
 from gsmn.world.spec import split_env_ids
@@ -273,10 +273,9 @@ class ProgressLog:
 
     def write(self, record: EpisodeRecord) -> None:
         self.done += 1
-        line = {k: v for k, v in record.to_dict().items() if k not in ("trajectory", "actions")}
+        d = record.to_dict()
+        line = {k: v for k, v in d.items() if k not in ("trajectory", "actions")}
         line["final_yaw"] = record.trajectory[-1][3]  # for failure attribution (which way a control failure missed)
-        line["region_steps"] = steps_in_success_region(  # did a failure fly through the region (its STOP failed)?
-            record.trajectory, (record.landmark_x, record.landmark_y), (record.start_x, record.start_y), record.side,
-            self.success_radius)
+        line["region_steps"] = record_region_steps(d, self.success_radius)  # a failure that flew through it: STOP
         with self.path.open("a") as f:
             f.write(json.dumps({"done": self.done, "total": self.total, **line}) + "\n")

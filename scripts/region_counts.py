@@ -12,22 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from itertools import combinations
 from pathlib import Path
 
-from gsmn.task.metrics import steps_in_success_region
-
-
-def entered(episode: dict, radius: float) -> bool:
-    return bool(steps_in_success_region(episode["trajectory"], (episode["landmark_x"], episode["landmark_y"]),
-                                        (episode["start_x"], episode["start_y"]), episode["side"], radius))
-
-
-def sign_test(a: int, b: int) -> float:
-    """Two-sided exact sign test of a against b discordant pairs."""
-    k, n = min(a, b), a + b
-    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+from gsmn.task.metrics import record_region_steps, sign_test
 
 
 def main() -> None:
@@ -44,7 +32,7 @@ def main() -> None:
         if not path:
             parser.error(f"expected NAME=PATH, got {spec!r}")
         episodes = json.loads(Path(path).read_text())["episodes"]
-        reached[name] = {e["env_id"]: entered(e, args.radius) for e in episodes}
+        reached[name] = {e["env_id"]: bool(record_region_steps(e, args.radius)) for e in episodes}
         n_in = sum(reached[name].values())
         ok = sum(e["success"] for e in episodes)
         missed = [e for e in episodes if reached[name][e["env_id"]] and not e["success"]]

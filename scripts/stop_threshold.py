@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from gsmn.attribution import load_trace, trace_path  # noqa: E402
-from gsmn.task.metrics import landmark_success, success  # noqa: E402
+from gsmn.task.metrics import landmark_success, sign_test, success  # noqa: E402
 
 
 def stop_step(stop_probability: np.ndarray, tau: float, last: int) -> int:
@@ -40,11 +39,6 @@ def outcome(episode: dict, stop_probability: np.ndarray, tau: float, radius: flo
     landmark, start = (episode["landmark_x"], episode["landmark_y"]), (episode["start_x"], episode["start_y"])
     stopped = t < last or episode["stopped"]
     return success(xy, landmark, start, episode["side"], radius), landmark_success(xy, landmark, radius), stopped
-
-
-def sign_test(a: int, b: int) -> float:
-    k, n = min(a, b), a + b
-    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
 
 
 def main() -> int:

@@ -25,7 +25,9 @@ from gsmn.task.metrics import (
     EpisodeOutcome,
     goal_distance,
     landmark_success,
+    record_region_steps,
     side_of,
+    sign_test,
     steps_in_success_region,
     success,
     summarize,
@@ -114,6 +116,14 @@ def test_steps_in_success_region_are_where_a_stop_would_have_succeeded():
     assert steps_in_success_region(path, lm, start, "front") == [5, 6, 7, 8, 9]
     assert steps_in_success_region(path, lm, start, "left") == []
     assert steps_in_success_region(path, lm, start, "back", radius=3.0) == [10, 11, 12]
+    record = {"trajectory": [(*p, 0.0) for p in path], "landmark_x": 10.0, "landmark_y": 0.0, "start_x": 0.0,
+              "start_y": 0.0, "side": "front"}  # as `gsmn eval --json` writes it: (x, y, z, yaw) per step
+    assert record_region_steps(record) == [5, 6, 7, 8, 9] and record_region_steps(record, 3.0) == [8, 9]
+
+
+def test_sign_test_of_discordant_pairs():
+    assert sign_test(0, 0) == 1.0 and sign_test(5, 0) == sign_test(0, 5) == 2 / 32
+    assert sign_test(3, 3) == 1.0 and sign_test(9, 2) == sign_test(2, 9) == 2 * (1 + 11 + 55) / 2 ** 11
 
 
 def _outcome(final, side="back", ambiguous=False) -> EpisodeOutcome:

@@ -15,7 +15,7 @@ than a threshold"): a point exactly 6 m away is not inside it.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -51,6 +51,18 @@ def steps_in_success_region(positions: Iterable[Any], landmark_xy: Any, start_xy
     """The indices of the positions (one per step) at which a STOP would have succeeded: a policy that passes
     through the success region without saying STOP fails on its stopping, not on its navigation."""
     return [i for i, p in enumerate(positions) if success(p, landmark_xy, start_xy, side, radius)]
+
+
+def record_region_steps(record: Mapping[str, Any], radius: float = 6.0) -> list[int]:
+    """`steps_in_success_region` of an episode record as `EpisodeRecord.to_dict()` (or `gsmn eval --json`) has it."""
+    return steps_in_success_region(record["trajectory"], (record["landmark_x"], record["landmark_y"]),
+                                   (record["start_x"], record["start_y"]), record["side"], radius)
+
+
+def sign_test(a: int, b: int) -> float:
+    """Two-sided exact sign test of a against b discordant pairs (episodes only one of two evaluations won)."""
+    k, n = min(a, b), a + b
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
 
 
 def goal_distance(final_xy: Any, goal_xy: Any) -> float:
