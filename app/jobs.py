@@ -42,7 +42,7 @@ from pathlib import Path
 from app.commands import Conflict, NotFound, RunnerError
 from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, EpisodeRow, Evaluation, Run
 from gsmn.config import ConfigError, RunConfig, leaf_fields, preset, with_overrides
-from gsmn.task.metrics import record_region_steps
+from gsmn.task.metrics import record_region_steps, region_stop_probability
 
 log = logging.getLogger("gsmn.dashboard")
 
@@ -598,8 +598,12 @@ class JobManager:
             recording = None
         attribution = self._attribute(record, config, checkpoint, trace) if trace is not None and checkpoint else None
         region = region_steps_of(record, config.task.success_radius)
-        stop_p = None
-        if region and trace is not None and max(region) < len(trace.stop_probability):
+        # the P(stop) the policy acted on (an ensemble's mean), from the record or its progress line; else the
+        # recording's (for a mirror ensemble, the unmirrored copy's), for files written before it was recorded
+        stop_p = region_stop_probability(record, region)
+        if stop_p is None and region and record.get("region_stop_p") is not None:
+            stop_p = float(record["region_stop_p"])
+        if stop_p is None and region and trace is not None and max(region) < len(trace.stop_probability):
             stop_p = float(max(trace.stop_probability[i] for i in region))
         self.db.add_episode(EpisodeRow(
             evaluation_id=evaluation_id, position=position, env_id=env_id, instruction=record["instruction"],

@@ -105,7 +105,7 @@ def region_passage(episode: Episode, success_radius: float = 6.0) -> str:
     navigation failure is the first question about a failure of a model that flies well."""
     inside = steps_in_region(episode, success_radius)
     steps = episode.steps
-    probabilities = [steps[i].maps.stop_probability for i in inside if steps[i].maps is not None]
+    probabilities = [p for i in inside if (p := steps[i].decisive_stop_probability) is not None]
     return region_text(inside, max(probabilities) if probabilities else None)
 
 
@@ -155,7 +155,7 @@ def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple
     steps = list(episode.steps)
     last = max(len(steps) - 1, 1)
     inside = steps_in_region(episode, success_radius)
-    stop = next((s.step for s in steps if s.maps is not None and s.maps.stop_probability > 0.5), None)
+    stop = next((s.step for s in steps if (s.decisive_stop_probability or 0.0) > 0.5), None)
     inner = [(t, label) for t, label in ((inside[0] if inside else None, "in region"), (stop, "P(stop)>0.5"))
              if t is not None and 0 < t < last]
     inner.sort(key=lambda mark: mark[0])  # stable: at one step, "in region" first

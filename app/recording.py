@@ -49,6 +49,16 @@ class StepRecord:
     omega: float
     stop: bool
     maps: StepMaps | None  # None when no model watched this episode
+    # the P(stop) the flown STOP was decided on when a model flew (a mirror ensemble's: the mean of its two
+    # copies, where maps.stop_probability is the unmirrored copy's); None when the expert flew
+    stop_probability: float | None = None
+
+    @property
+    def decisive_stop_probability(self) -> float | None:
+        """The P(stop) that decided this step when a model flew, else the watching model's; None without a model."""
+        if self.stop_probability is not None:
+            return self.stop_probability
+        return self.maps.stop_probability if self.maps is not None else None
 
 
 @dataclass(frozen=True)

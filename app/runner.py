@@ -482,8 +482,8 @@ class Runner:
             record = rollout(self.env, policy, episode.task, episode.horizon,
                              on_step=lambda obs, action: self._on_step(episode, obs, action, watcher),
                              success_radius=self.config.task.success_radius)
-            last = episode.steps[-1].maps if episode.steps else None
-            episode.result = EpisodeResult.of(record, last.stop_probability if last else None)
+            last = episode.steps[-1] if episode.steps else None
+            episode.result = EpisodeResult.of(record, last.decisive_stop_probability if last else None)
             episode.status = FINISHED
         except _Unwind:
             episode.status = CANCELLED
@@ -502,7 +502,8 @@ class Runner:
                             yaw=float(obs.pose.yaw), T_world_camera=obs.T_world_camera.astype(np.float32),
                             camera_jpeg=jpeg_bytes(obs.image), v=float(action.forward_velocity),
                             omega=float(action.yaw_rate), stop=bool(action.stop),
-                            maps=_step_maps(watcher) if watcher is not None else None)
+                            maps=_step_maps(watcher) if watcher is not None else None,
+                            stop_probability=action.stop_probability)
         episode.steps.append(record)
         if episode.first_frame is None:
             episode.first_frame = time.perf_counter()

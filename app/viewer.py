@@ -680,5 +680,5 @@ class Viewer(RunnerListener):
         x = np.arange(len(steps), dtype=np.float64)
         v = np.array([s.v for s in steps], np.float64)
         omega = np.array([s.omega for s in steps], np.float64)
-        stop = np.array([s.maps.stop_probability if s.maps else np.nan for s in steps], np.float64)
+        stop = np.array([np.nan if (p := s.decisive_stop_probability) is None else p for s in steps], np.float64)
         self.plot.data = (x, v, omega, stop)

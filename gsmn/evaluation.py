@@ -28,7 +28,7 @@ from gsmn.task.baselines import (
     RandomLandmarkPolicy,
     RandomPointPolicy,
 )
-from gsmn.task.metrics import Summary, record_region_steps, summarize
+from gsmn.task.metrics import Summary, record_region_steps, region_stop_probability, summarize
 from gsmn.task.rollout import EpisodeRecord, Policy, rollout, task_for_env
 from gsmn.world.env import Env
 from gsmn.world.spec import split_env_ids
@@ -274,8 +274,9 @@ class ProgressLog:
     def write(self, record: EpisodeRecord) -> None:
         self.done += 1
         d = record.to_dict()
-        line = {k: v for k, v in d.items() if k not in ("trajectory", "actions")}
+        line = {k: v for k, v in d.items() if k not in ("trajectory", "actions", "stop_probabilities")}
         line["final_yaw"] = record.trajectory[-1][3]  # for failure attribution (which way a control failure missed)
-        line["region_steps"] = record_region_steps(d, self.success_radius)  # a failure that flew through it: STOP
+        line["region_steps"] = region = record_region_steps(d, self.success_radius)  # flew through it: STOP
+        line["region_stop_p"] = region_stop_probability(d, region)
         with self.path.open("a") as f:
             f.write(json.dumps({"done": self.done, "total": self.total, **line}) + "\n")

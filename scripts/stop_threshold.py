@@ -1,13 +1,15 @@
 """What a plainly flown evaluation would have scored with a lower STOP threshold, computed exactly offline.
 
-    python scripts/stop_threshold.py runs/eval19_k_dev.json runs/eval19_k_dev_rec --taus 0.5 0.4 0.3 0.2
+    python scripts/stop_threshold.py runs/eval20_gs-fpv-mem.json --taus 0.5 0.4 0.3 0.2
+    python scripts/stop_threshold.py runs/eval19_k_dev.json runs/eval19_k_dev_rec     # a file without P(stop)
 
 The paper's policy says STOP when P(stop) > 0.5. With a threshold tau <= 0.5 the policy would say STOP at the
 first step where P(stop) > tau, which is never later than where it stopped; up to that step it flies exactly as
-recorded. So a `gsmn eval --json` file (its trajectories) and its `--record` folder (the model's P(stop) at every
-step) give each episode's outcome at any such tau, without flying it again. The recorded actions are checked
-against the recorded P(stop) at 0.5 first, so a file flown otherwise (a mirror ensemble, whose recording holds one
-copy's P(stop)) is refused. Prints success, landmark success and, against 0.5, episodes fixed and broken.
+recorded. So a `gsmn eval --json` file (its trajectories, and the P(stop) the policy acted on at every step, which
+evaluations keep since 2026-11-27, twentieth session) gives each episode's outcome at any such tau, without flying
+it again. For an older file, its `--record` folder gives the model's P(stop) (a plain GSMN only: an ensemble's
+recording holds one network's P(stop), not the mean it acted on). The P(stop) is checked against the recorded
+STOPs at 0.5 first. Prints success, landmark success and, against 0.5, episodes fixed and broken.
 """
 
 from __future__ import annotations
@@ -44,20 +46,27 @@ def outcome(episode: dict, stop_probability: np.ndarray, tau: float, radius: flo
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", help="a `gsmn eval --json` file, flown plainly")
-    parser.add_argument("record", help="its --record folder")
+    parser.add_argument("record", nargs="?", help="its --record folder (only for a file without stop_probabilities)")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.15, 0.1])
     parser.add_argument("--radius", type=float, default=None, help="default: the evaluation's own success radius")
     args = parser.parse_args()
     if any(not 0 < tau <= 0.5 for tau in args.taus):
         parser.error("every tau must be in (0, 0.5]: a higher one could stop later than the recorded flight")
     results = json.loads(Path(args.results).read_text())
-    if results.get("mirror_ensemble") or results.get("ensemble_with"):
-        parser.error("an ensemble's recording holds one network's P(stop), not the one it acted on")
     radius = args.radius or results["config"]["task"]["success_radius"]
     episodes = results["episodes"]
+    in_file = all(e.get("stop_probabilities") is not None for e in episodes)
+    if not in_file:
+        if args.record is None:
+            parser.error("this file keeps no P(stop) per step: give its --record folder")
+        if results.get("mirror_ensemble") or results.get("ensemble_with"):
+            parser.error("an ensemble's recording holds one network's P(stop), not the one it acted on")
     probabilities = {}
     for e in episodes:
-        p = load_trace(trace_path(args.record, e["env_id"])).stop_probability
+        if in_file:
+            p = np.asarray(e["stop_probabilities"], np.float64)
+        else:
+            p = load_trace(trace_path(args.record, e["env_id"])).stop_probability
         said = [bool(a[2]) for a in e["actions"]]
         if len(p) != len(said) or any((q > 0.5) != s for q, s in zip(p, said, strict=True) if abs(q - 0.5) > 1e-4):
             parser.error(f"environment {e['env_id']}: the recorded P(stop) does not give the recorded STOPs")
@@ -70,13 +79,16 @@ def main() -> int:
     print(f"{n} episodes of {args.results}; success radius {radius:g} m")
     print("| tau | success | landmark success | said STOP | fixed vs 0.5 | broken vs 0.5 | sign test p |")
     print("|---|---|---|---|---|---|---|")
+    best = None  # (successes, tau): the most successes, ties to the higher tau (nearer the paper's 0.5)
     for tau in args.taus:
         rows = {e["env_id"]: outcome(e, probabilities[e["env_id"]], tau, radius) for e in episodes}
         ok = sum(r[0] for r in rows.values())
+        best = max(best or (ok, tau), (ok, tau))
         fixed = sum(rows[i][0] and not base[i] for i in rows)
         broken = sum(base[i] and not rows[i][0] for i in rows)
         print(f"| {tau:g} | {100 * ok / n:.1f} % ({ok}) | {100 * sum(r[1] for r in rows.values()) / n:.1f} % | "
               f"{sum(r[2] for r in rows.values())} | {fixed} | {broken} | {sign_test(fixed, broken):.2g} |")
+    print(f"most successes (ties: the higher tau): tau {best[1]:g}, {best[0]} of {n}")
     return 0
 
 

@@ -87,6 +87,7 @@ def test_model_episode_records_every_step(runner):
     assert 0.0 <= m.stop_probability <= 1.0
     assert episode.steps[0].v == pytest.approx(m.v)  # the model flew: its own action is the flown one
     assert episode.result.stop_probability == episode.steps[-1].maps.stop_probability
+    assert all(s.stop_probability == s.maps.stop_probability for s in episode.steps)  # one network: one P(stop)
     assert episode.steps_per_second() > 0
 
 
@@ -99,6 +100,10 @@ def test_mirror_ensemble_flies_and_records_the_unmirrored_maps(runner):
     assert all(s.maps is not None for s in episode.steps)
     gaps = [abs(s.omega - s.maps.omega) + abs(s.v - s.maps.v) for s in episode.steps if not s.stop]
     assert max(gaps) > 1e-4
+    # the STOP was decided on the mean of the two copies' P(stop), which the step keeps beside the copy's own
+    assert all((s.stop_probability > 0.5) == s.stop for s in episode.steps)
+    assert max(abs(s.stop_probability - s.maps.stop_probability) for s in episode.steps) > 1e-6
+    assert episode.result.stop_probability == episode.steps[-1].stop_probability
 
 
 def test_expert_flies_while_the_model_watches(runner):
@@ -107,6 +112,8 @@ def test_expert_flies_while_the_model_watches(runner):
     assert episode.status == FINISHED and episode.system == "oracle"
     assert episode.result.success and episode.result.stopped and episode.result.goal_distance < 2.0
     assert all(s.maps is not None for s in episode.steps)  # the model's maps, although the expert flew
+    assert all(s.stop_probability is None and s.decisive_stop_probability == s.maps.stop_probability
+               for s in episode.steps)  # the expert decided; the watching model's P(stop) is what is shown
 
 
 def test_grounding_the_flown_instruction_reproduces_the_recorded_maps(runner):

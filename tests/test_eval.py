@@ -162,6 +162,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     lines = [json.loads(x) for x in progress.read_text().splitlines()]
     records = {e["env_id"]: e for e in json.loads(oracle.read_text())["episodes"]}
     assert [x["done"] for x in lines] == [1, 2, 3] and all("trajectory" not in x for x in lines)
+    assert all(x["region_stop_p"] is None and "stop_probabilities" not in x for x in lines)  # the expert has none
     assert any(r["success"] for r in records.values())
     for line in lines:
         record = records[line["env_id"]]
@@ -238,6 +239,8 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     results = tmp_path / "eval.json"
     results.write_text(json.dumps(results_dict("gsmn", str(folder), records, config, 1.0, 1)))
     p = {r.env_id: load_trace(trace_path(tmp_path / "rec", r.env_id)).stop_probability for r in records}
+    # the record keeps the P(stop) the policy acted on: here the recording's, step for step
+    assert all(np.array_equal(np.float32(r.stop_probabilities), p[r.env_id]) for r in records)
     tau = float(np.median(np.concatenate(list(p.values()))))  # about half the steps are above it
     assert 0 < tau < 0.5
     script = Path(__file__).resolve().parents[1] / "scripts" / "stop_threshold.py"
@@ -257,9 +260,28 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
                                config.task.success_radius)
     assert rows[f"{tau:g}"][1].endswith(f"({expected_ok})") and rows[f"{tau:g}"][3] == str(expected_stops)
     assert expected_stops == 2  # both stop early at this threshold
-    mirrored = json.loads(results.read_text())
-    mirrored["mirror_ensemble"] = True
-    (tmp_path / "mirrored.json").write_text(json.dumps(mirrored))
+    # the file's own P(stop) alone gives the same table
+    alone = subprocess.run([sys.executable, str(script), str(results), "--taus", "0.5", str(tau)],
+                           capture_output=True, text=True)
+    assert alone.returncode == 0 and alone.stdout.splitlines()[1:] == run.stdout.splitlines()[1:], alone.stderr
+    base_ok = sum(r.success for r in records)
+    chosen = (0.5, base_ok) if base_ok >= expected_ok else (tau, expected_ok)  # ties go to the higher tau
+    assert f"most successes (ties: the higher tau): tau {chosen[0]:g}, {chosen[1]} of 2" in alone.stdout
+    # an ensemble keeps the mean P(stop) it acted on, so its file is scored too; its recording alone is refused
+    ensemble = evaluate("gsmn", [70], config, folder, mirror_ensemble=True)
+    (tmp_path / "ens.json").write_text(json.dumps(results_dict("gsmn", str(folder), ensemble, config, 1.0, 1,
+                                                               mirror_ensemble=True)))
+    assert len(ensemble[0].stop_probabilities) == len(ensemble[0].actions)
+    scored = subprocess.run([sys.executable, str(script), str(tmp_path / "ens.json")], capture_output=True, text=True)
+    assert scored.returncode == 0 and f"({int(ensemble[0].success)})" in scored.stdout.splitlines()[3], scored.stderr
+    older = json.loads(results.read_text())  # a file written before P(stop) was kept
+    for e in older["episodes"]:
+        del e["stop_probabilities"]
+    (tmp_path / "older.json").write_text(json.dumps(older))
+    needs = subprocess.run([sys.executable, str(script), str(tmp_path / "older.json")], capture_output=True, text=True)
+    assert needs.returncode == 2 and "give its --record folder" in needs.stderr
+    older["mirror_ensemble"] = True
+    (tmp_path / "mirrored.json").write_text(json.dumps(older))
     refused = subprocess.run([sys.executable, str(script), str(tmp_path / "mirrored.json"), str(tmp_path / "rec")],
                              capture_output=True, text=True)
     assert refused.returncode == 2 and "one network's P(stop)" in refused.stderr

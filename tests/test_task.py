@@ -26,6 +26,7 @@ from gsmn.task.metrics import (
     goal_distance,
     landmark_success,
     record_region_steps,
+    region_stop_probability,
     side_of,
     sign_test,
     steps_in_success_region,
@@ -119,6 +120,15 @@ def test_steps_in_success_region_are_where_a_stop_would_have_succeeded():
     record = {"trajectory": [(*p, 0.0) for p in path], "landmark_x": 10.0, "landmark_y": 0.0, "start_x": 0.0,
               "start_y": 0.0, "side": "front"}  # as `gsmn eval --json` writes it: (x, y, z, yaw) per step
     assert record_region_steps(record) == [5, 6, 7, 8, 9] and record_region_steps(record, 3.0) == [8, 9]
+
+
+def test_region_stop_probability_is_the_highest_p_stop_the_policy_acted_on_inside_the_region():
+    record = {"stop_probabilities": [0.1, 0.3, 0.2, 0.05, 0.6]}
+    assert region_stop_probability(record, [1, 2]) == 0.3 and region_stop_probability(record, [2, 3]) == 0.2
+    assert region_stop_probability(record, []) is None  # never entered
+    assert region_stop_probability({"stop_probabilities": None}, [1]) is None  # the expert keeps none
+    assert region_stop_probability({}, [1]) is None  # a file written before P(stop) was kept
+    assert region_stop_probability(record, [4, 5]) is None  # steps it does not have: not a partial answer
 
 
 def test_sign_test_of_discordant_pairs():

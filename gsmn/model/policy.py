@@ -72,7 +72,8 @@ class ModelPolicy:
         drone = self.config.drone
         return PolicyAction(forward_velocity=float(outputs.v[0, 0]) * drone.max_forward_velocity,
                             yaw_rate=float(outputs.omega[0, 0]) * drone.max_yaw_rate,
-                            stop=bool(outputs.stop_logit[0, 0] > 0))  # sigmoid(logit) > 0.5
+                            stop=bool(outputs.stop_logit[0, 0] > 0),  # sigmoid(logit) > 0.5
+                            stop_probability=float(torch.sigmoid(outputs.stop_logit[0, 0])))
 
     def counterfactual(self, text: str) -> GroundingOutputs:
         """Ground another instruction on the current semantic map at the current pose (GSMN only), without
@@ -139,9 +140,10 @@ class Ensemble:
             a = policy.act(mirrored if m else obs)
             v += a.forward_velocity
             omega += -a.yaw_rate if m else a.yaw_rate
-            p_stop += float(torch.sigmoid(policy.last_outputs.stop_logit[0, 0]))
+            p_stop += a.stop_probability
         n = len(self.members)
-        return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop / n > 0.5)
+        return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop / n > 0.5,
+                            stop_probability=p_stop / n)
 
     def counterfactual(self, text: str) -> GroundingOutputs:
         return self.policy.counterfactual(text)

@@ -59,6 +59,16 @@ def record_region_steps(record: Mapping[str, Any], radius: float = 6.0) -> list[
                                    (record["start_x"], record["start_y"]), record["side"], radius)
 
 
+def region_stop_probability(record: Mapping[str, Any], region: list[int] | None) -> float | None:
+    """The highest P(stop) the policy acted on at the steps `region` (from `record_region_steps`), or None when the
+    record carries no P(stop) (the expert, a heuristic baseline, a file written before it was recorded) or the
+    drone never entered the region."""
+    probabilities = record.get("stop_probabilities")
+    if not probabilities or not region or max(region) >= len(probabilities):
+        return None
+    return float(max(probabilities[i] for i in region))
+
+
 def sign_test(a: int, b: int) -> float:
     """Two-sided exact sign test of a against b discordant pairs (episodes only one of two evaluations won)."""
     k, n = min(a, b), a + b

@@ -56,6 +56,7 @@ class PolicyAction:
     forward_velocity: float  # m/s
     yaw_rate: float  # rad/s, positive turns left
     stop: bool
+    stop_probability: float | None = None  # a learned policy's P(stop), on which `stop` was decided
 
 
 class Policy(Protocol):
@@ -93,6 +94,8 @@ class EpisodeRecord:
     goal_distance: float
     trajectory: tuple[tuple[float, float, float, float], ...]  # (x, y, z, yaw) at every observation
     actions: tuple[tuple[float, float, bool], ...]  # (v m/s, omega rad/s, stop) at every observation
+    # the policy's P(stop) at every observation (learned policies; None for the expert, baselines, older files)
+    stop_probabilities: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -102,6 +105,8 @@ class EpisodeRecord:
         d = dict(d)
         d["trajectory"] = tuple(tuple(p) for p in d["trajectory"])
         d["actions"] = tuple(tuple(a) for a in d["actions"])
+        if d.get("stop_probabilities") is not None:
+            d["stop_probabilities"] = tuple(d["stop_probabilities"])
         return cls(**d)
 
 
@@ -114,12 +119,13 @@ def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep 
     world, instruction = task.world, task.instruction
     obs = env.reset(world.env_id, instruction.text, world)
     policy.reset(task)
-    trajectory, actions, stopped = [], [], False
+    trajectory, actions, stop_probabilities, stopped = [], [], [], False
     while True:
         action = policy.act(obs)
         p = obs.pose.position
         trajectory.append((float(p[0]), float(p[1]), float(p[2]), float(obs.pose.yaw)))
         actions.append((float(action.forward_velocity), float(action.yaw_rate), bool(action.stop)))
+        stop_probabilities.append(action.stop_probability)
         if on_step is not None:
             on_step(obs, action)
         if action.stop:
@@ -138,4 +144,5 @@ def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep 
         final_x=float(final[0]), final_y=float(final[1]), steps=obs.step, stopped=stopped,
         success=success(final, landmark.position, world.start_position, instruction.side, success_radius),
         landmark_success=landmark_success(final, landmark.position, success_radius),
-        goal_distance=goal_distance(final, instruction.goal), trajectory=tuple(trajectory), actions=tuple(actions))
+        goal_distance=goal_distance(final, instruction.goal), trajectory=tuple(trajectory), actions=tuple(actions),
+        stop_probabilities=None if None in stop_probabilities else tuple(map(float, stop_probabilities)))
