@@ -5,7 +5,9 @@ many never stopped; with a sign test on "entered the region" between evaluations
     python scripts/region_counts.py gs-fpv=runs/eval17_gs-fpv.json gs-fpv-mem=runs/eval17_gs-fpv-mem.json
 
 Reads the trajectories of `gsmn eval --json` files (no recordings needed). A system that enters the region often
-but succeeds rarely fails on its STOP, not on its navigation (docs/training.md, the baselines' order).
+but succeeds rarely fails on its STOP, not on its navigation (docs/training.md, the baselines' order). Where the
+file keeps the policy's P(stop) per step (evaluations since 2026-11-27), the last column is the median and
+quartiles, over the failures that flew through the region, of the highest P(stop) there.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ import json
 from itertools import combinations
 from pathlib import Path
 
-from gsmn.task.metrics import record_region_steps, sign_test
+import numpy as np
+
+from gsmn.task.metrics import record_region_steps, region_stop_probability, sign_test
 
 
 def main() -> None:
@@ -25,20 +29,29 @@ def main() -> None:
     args = parser.parse_args()
     reached: dict[str, dict[int, bool]] = {}
     print("| system | episodes | success | entered the region | of those: success | stopped elsewhere later | "
-          "never stopped |")
-    print("|---|---|---|---|---|---|---|")
+          "never stopped | highest P(stop) there, flown through |")
+    print("|---|---|---|---|---|---|---|---|")
     for spec in args.evaluations:
         name, _, path = spec.partition("=")
         if not path:
             parser.error(f"expected NAME=PATH, got {spec!r}")
         episodes = json.loads(Path(path).read_text())["episodes"]
-        reached[name] = {e["env_id"]: bool(record_region_steps(e, args.radius)) for e in episodes}
+        regions = {e["env_id"]: record_region_steps(e, args.radius) for e in episodes}
+        reached[name] = {i: bool(steps) for i, steps in regions.items()}
         n_in = sum(reached[name].values())
         ok = sum(e["success"] for e in episodes)
         missed = [e for e in episodes if reached[name][e["env_id"]] and not e["success"]]
         later = sum(e["stopped"] for e in missed)
+        highest = [p for e in missed if (p := region_stop_probability(e, regions[e["env_id"]])) is not None]
+        if not missed:
+            spread = "-"
+        elif len(highest) < len(missed):
+            spread = "not kept"  # the expert, a heuristic baseline, or a file written before P(stop) was kept
+        else:
+            q = np.percentile(highest, [50, 25, 75])
+            spread = f"{q[0]:.2f} ({q[1]:.2f}-{q[2]:.2f})"
         print(f"| {name} | {len(episodes)} | {ok} | {n_in} | {ok} ({100 * ok / max(n_in, 1):.0f} %) | {later} | "
-              f"{len(missed) - later} |")
+              f"{len(missed) - later} | {spread} |")
     for (na, a), (nb, b) in combinations(reached.items(), 2):
         if a.keys() != b.keys():
             print(f"{na} vs {nb}: not the same environments")

@@ -187,6 +187,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
         row = next(r for r in counts.stdout.splitlines() if r.startswith(f"| {name} |")).strip("| ").split(" | ")
         successes, entered = int(row[2]), int(row[3])
         assert successes == sum(e["success"] for e in episodes) and entered >= successes
+        assert row[7] == ("-" if entered == successes else "not kept")  # neither keeps a P(stop)
     assert "entered: only oracle" in counts.stdout
     d["env_ids"] = [70, 71]
     other = tmp_path / "other.json"
