@@ -10,6 +10,11 @@ evaluations keep since 2026-11-27, twentieth session) gives each episode's outco
 it again. For an older file, its `--record` folder gives the model's P(stop) (a plain GSMN only: an ensemble's
 recording holds one network's P(stop), not the mean it acted on). The P(stop) is checked against the recorded
 STOPs at 0.5 first. Prints success, landmark success and, against 0.5, episodes fixed and broken.
+
+    python scripts/stop_threshold.py runs/eval20_gs-fpv.json --write 0.2 runs/eval20_gs-fpv_tau0.2.json
+
+`--write TAU OUT` also writes the evaluation as flown at TAU, in the form of `gsmn eval --json` (each episode cut
+at its STOP, its summary recomputed, "stop_threshold": TAU), for scripts/results_table.py and the dashboard.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from gsmn.attribution import load_trace, trace_path  # noqa: E402
-from gsmn.task.metrics import landmark_success, sign_test, success  # noqa: E402
+from gsmn.task.metrics import goal_distance, landmark_success, sign_test, success, summarize  # noqa: E402
 
 
 def stop_step(stop_probability: np.ndarray, tau: float, last: int) -> int:
@@ -43,16 +48,37 @@ def outcome(episode: dict, stop_probability: np.ndarray, tau: float, radius: flo
     return success(xy, landmark, start, episode["side"], radius), landmark_success(xy, landmark, radius), stopped
 
 
+def flown_at(episode: dict, stop_probability: np.ndarray, tau: float, radius: float) -> dict:
+    """The episode record as the policy with threshold tau <= 0.5 would have flown it: cut at its STOP."""
+    last = len(episode["trajectory"]) - 1
+    t = stop_step(stop_probability, tau, last)
+    if t == last:
+        return dict(episode)
+    ok, at_landmark, _ = outcome(episode, stop_probability, tau, radius)
+    x, y = episode["trajectory"][t][:2]
+    actions = [list(a) for a in episode["actions"][:t + 1]]
+    actions[-1][2] = True
+    return {**episode, "final_x": x, "final_y": y, "steps": t, "stopped": True, "success": ok,
+            "landmark_success": at_landmark, "goal_distance": goal_distance((x, y), (episode["goal_x"],
+                                                                                      episode["goal_y"])),
+            "trajectory": episode["trajectory"][:t + 1], "actions": actions,
+            "stop_probabilities": [float(q) for q in stop_probability[:t + 1]]}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", help="a `gsmn eval --json` file, flown plainly")
     parser.add_argument("record", nargs="?", help="its --record folder (only for a file without stop_probabilities)")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.15, 0.1])
     parser.add_argument("--radius", type=float, default=None, help="default: the evaluation's own success radius")
+    parser.add_argument("--write", nargs=2, metavar=("TAU", "OUT"), help="write the evaluation as flown at TAU")
     args = parser.parse_args()
-    if any(not 0 < tau <= 0.5 for tau in args.taus):
+    if any(not 0 < tau <= 0.5 for tau in args.taus + ([float(args.write[0])] if args.write else [])):
         parser.error("every tau must be in (0, 0.5]: a higher one could stop later than the recorded flight")
     results = json.loads(Path(args.results).read_text())
+    if "stop_threshold" in results:
+        parser.error(f"this file is an evaluation re-scored at tau {results['stop_threshold']:g} (--write); "
+                     "give the evaluation it was written from")
     radius = args.radius or results["config"]["task"]["success_radius"]
     episodes = results["episodes"]
     in_file = all(e.get("stop_probabilities") is not None for e in episodes)
@@ -89,6 +115,13 @@ def main() -> int:
         print(f"| {tau:g} | {100 * ok / n:.1f} % ({ok}) | {100 * sum(r[1] for r in rows.values()) / n:.1f} % | "
               f"{sum(r[2] for r in rows.values())} | {fixed} | {broken} | {sign_test(fixed, broken):.2g} |")
     print(f"most successes (ties: the higher tau): tau {best[1]:g}, {best[0]} of {n}")
+    if args.write:
+        tau, out = float(args.write[0]), Path(args.write[1])
+        flown = [flown_at(e, probabilities[e["env_id"]], tau, radius) for e in episodes]
+        written = {**results, "stop_threshold": tau, "summary": summarize(flown, radius).to_dict(), "episodes": flown}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(written) + "\n")
+        print(f"wrote {out}: {sum(e['success'] for e in flown)} of {n} at tau {tau:g}")
     return 0
 
 

@@ -268,6 +268,20 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     base_ok = sum(r.success for r in records)
     chosen = (0.5, base_ok) if base_ok >= expected_ok else (tau, expected_ok)  # ties go to the higher tau
     assert f"most successes (ties: the higher tau): tau {chosen[0]:g}, {chosen[1]} of 2" in alone.stdout
+    # --write: the evaluation as flown at tau, each episode cut at its STOP, for results_table.py and the dashboard
+    flown = tmp_path / "at_tau.json"
+    wrote = subprocess.run([sys.executable, str(script), str(results), "--taus", str(tau), "--write", str(tau),
+                            str(flown)], capture_output=True, text=True)
+    assert wrote.returncode == 0, wrote.stderr
+    at_tau = json.loads(flown.read_text())
+    assert at_tau["stop_threshold"] == tau and sum(e["success"] for e in at_tau["episodes"]) == expected_ok
+    assert at_tau["summary"]["success"] == pytest.approx(50.0 * expected_ok)
+    for e, r in zip(at_tau["episodes"], records, strict=True):
+        t = int(np.flatnonzero(p[r.env_id] > tau)[0])  # both stop early at this threshold (above)
+        assert e["stopped"] and e["steps"] == t and len(e["trajectory"]) == len(e["actions"]) == t + 1
+        assert e["actions"][-1][2] and (e["final_x"], e["final_y"]) == tuple(r.trajectory[t][:2])
+    again = subprocess.run([sys.executable, str(script), str(flown)], capture_output=True, text=True)
+    assert again.returncode == 2 and "re-scored at tau" in again.stderr
     # an ensemble keeps the mean P(stop) it acted on, so its file is scored too; its recording alone is refused
     ensemble = evaluate("gsmn", [70], config, folder, mirror_ensemble=True)
     (tmp_path / "ens.json").write_text(json.dumps(results_dict("gsmn", str(folder), ensemble, config, 1.0, 1,
