@@ -323,13 +323,18 @@ def test_a_server_killed_mid_run_reattaches_and_lists_every_past_job(serve, eval
              lambda b: (b["progress"] or {}).get("phase") not in (None, "expert data"), timeout=200,
              what="the run's DAgger phase")
     pid = serve_pid(serve, run["id"])
-    serve.stop(signal.SIGKILL)  # no chance to clean up
-    assert group_alive(pid), "the run does not depend on the server"
-    serve.start()
+    # held still across the restart (SIGSTOP to its process group), so that on a loaded machine it cannot finish
+    # while the new server is starting: the new server must find it running
+    os.killpg(pid, signal.SIGSTOP)
+    try:
+        serve.stop(signal.SIGKILL)  # no chance to clean up
+        assert group_alive(pid), "the run does not depend on the server"
+        serve.start()
+    finally:
+        os.killpg(pid, signal.SIGCONT)
     client = serve.client
     assert "re-attached to 1 running" in serve.output()
-    # running, or already finished on a loaded machine: either way the new server is the one that follows it,
-    # since the old one was killed while the run was still running
+    # the new server is the one that follows it to the end
     assert client.get(f"/api/runs/{run['id']}").json()["status"] in ("running", "finished")
     done = settled(client, f"/api/runs/{run['id']}", timeout=400)
     assert done["status"] == "finished" and len(done["metrics"]) == 2, done["error"]
