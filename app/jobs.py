@@ -598,13 +598,7 @@ class JobManager:
             recording = None
         attribution = self._attribute(record, config, checkpoint, trace) if trace is not None and checkpoint else None
         region = region_steps_of(record, config.task.success_radius)
-        # the P(stop) the policy acted on (an ensemble's mean), from the record or its progress line; else the
-        # recording's (for a mirror ensemble, the unmirrored copy's), for files written before it was recorded
-        stop_p = region_stop_probability(record, region)
-        if stop_p is None and region and record.get("region_stop_p") is not None:
-            stop_p = float(record["region_stop_p"])
-        if stop_p is None and region and trace is not None and max(region) < len(trace.stop_probability):
-            stop_p = float(max(trace.stop_probability[i] for i in region))
+        stop_p = region_stop_p_of(record, region, trace.stop_probability if trace is not None else None)
         self.db.add_episode(EpisodeRow(
             evaluation_id=evaluation_id, position=position, env_id=env_id, instruction=record["instruction"],
             landmark=record["noun_phrase"], side=record["side"], ambiguous=bool(record["ambiguous"]),
@@ -651,6 +645,20 @@ def region_steps_of(record: dict, success_radius: float) -> list[int] | None:
     if not record.get("trajectory"):
         return None
     return record_region_steps(record, success_radius)
+
+
+def region_stop_p_of(record: dict, region: list[int] | None, recorded=None) -> float | None:
+    """The highest P(stop) at the steps `region`: the one the policy acted on (an ensemble's mean), from a
+    `gsmn eval --json` record or its progress line; else from the recording's per-step P(stop) `recorded` (for a
+    mirror ensemble the unmirrored copy's), for files written before evaluations kept it; else None."""
+    if not region:
+        return None
+    stop_p = region_stop_probability(record, region)
+    if stop_p is None and record.get("region_stop_p") is not None:
+        stop_p = float(record["region_stop_p"])
+    if stop_p is None and recorded is not None and max(region) < len(recorded):
+        stop_p = float(max(recorded[i] for i in region))
+    return stop_p
 
 
 # -- reading a run's folder ---------------------------------------------------------------------------------------

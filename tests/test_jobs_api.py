@@ -176,6 +176,12 @@ def test_an_evaluation_records_each_episode_with_its_attribution(serve, evaluati
     keys = ("env_id", "region_steps", "region_stop_p")
     assert [[e[k] for k in keys] for e in again] == [[e[k] for k in keys] for e in episodes]
     assert loaded["regions"] == evaluation["regions"]
+    # without its recordings (as for a baseline, which has none) the region and P(stop) come from the file itself
+    # (these three never enter the region; test_jobs_units checks where a P(stop) there is taken from)
+    bare = client.post("/api/evaluations/import", json={"path": str(folder / "results.json")}).json()
+    bare_episodes = client.get(f"/api/evaluations/{bare['id']}/episodes").json()
+    assert [[e[k] for k in keys] for e in bare_episodes] == [[e[k] for k in keys] for e in episodes]
+    assert all(e["stage"] is None for e in bare_episodes)  # attribution needs the recorded maps
     bad = client.post("/api/evaluations/import", json={"path": str(folder / "config.json")})
     assert bad.status_code == 422 and "not a `gsmn eval --json` file" in bad.json()["detail"]
 

@@ -20,6 +20,7 @@ from app.jobs import (
     config_args,
     evaluation_system,
     region_steps_of,
+    region_stop_p_of,
     run_config,
     run_progress,
     run_settings,
@@ -329,3 +330,14 @@ def test_the_pages_text():
          "fixed": 1, "broken": 0, "before_success": 0.0, "after_success": 100.0, "before_mean_distance": 5.0,
          "after_mean_distance": 5.0}
     assert "0 % → 100 %" in compare_html(c, None) and "1 fixed" in compare_html(c, None)
+
+
+def test_the_p_stop_in_the_region_is_the_one_the_policy_acted_on_when_the_file_keeps_it():
+    recorded = [0.1, 0.2, 0.9, 0.3]  # a recording's (for a mirror ensemble: the unmirrored copy's)
+    acted = {"stop_probabilities": [0.1, 0.4, 0.45, 0.2]}  # a `gsmn eval --json` record keeps the mean acted on
+    assert region_stop_p_of(acted, [1, 2], recorded) == 0.45
+    assert region_stop_p_of({"region_stop_p": 0.33}, [1, 2], recorded) == 0.33  # a progress line's
+    assert region_stop_p_of({}, [1, 2], recorded) == 0.9  # an older file: the recording's
+    assert region_stop_p_of({}, [1, 2]) is None  # a baseline's older file: not known
+    assert region_stop_p_of(acted, [], recorded) is None and region_stop_p_of(acted, None) is None  # never entered
+    assert region_stop_p_of({}, [3, 4], recorded) is None  # steps the recording does not have
