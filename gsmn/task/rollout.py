@@ -94,7 +94,8 @@ class EpisodeRecord:
     goal_distance: float
     trajectory: tuple[tuple[float, float, float, float], ...]  # (x, y, z, yaw) at every observation
     actions: tuple[tuple[float, float, bool], ...]  # (v m/s, omega rad/s, stop) at every observation
-    # the policy's P(stop) at every observation (learned policies; None for the expert, baselines, older files)
+    # the P(stop) each step was decided on (learned policies; None for the expert, the heuristic baselines, files
+    # written before 2026-11-27)
     stop_probabilities: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict:
