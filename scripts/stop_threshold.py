@@ -67,7 +67,7 @@ def flown_at(episode: dict, stop_probability: np.ndarray, tau: float, radius: fl
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", help="a `gsmn eval --json` file, flown plainly")
+    parser.add_argument("results", help="a `gsmn eval --json` file (a plain network or an ensemble with its P(stop))")
     parser.add_argument("record", nargs="?", help="its --record folder (only for a file without stop_probabilities)")
     parser.add_argument("--taus", type=float, nargs="+", default=[0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.15, 0.1])
     parser.add_argument("--radius", type=float, default=None, help="default: the evaluation's own success radius")
