@@ -29,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from gsmn.attribution import load_trace, trace_path  # noqa: E402
+from gsmn.evaluation import write_json  # noqa: E402
 from gsmn.task.metrics import goal_distance, landmark_success, sign_test, success, summarize  # noqa: E402
 
 
@@ -119,8 +120,7 @@ def main() -> int:
         tau, out = float(args.write[0]), Path(args.write[1])
         flown = [flown_at(e, probabilities[e["env_id"]], tau, radius) for e in episodes]
         written = {**results, "stop_threshold": tau, "summary": summarize(flown, radius).to_dict(), "episodes": flown}
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(written) + "\n")
+        write_json(out, written)  # atomically, as `gsmn eval --json` writes
         print(f"wrote {out}: {sum(e['success'] for e in flown)} of {n} at tau {tau:g}")
     return 0
 
