@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -273,6 +274,8 @@ class TrainConfig:
     seed: int = _f(0, "seeds episode order, dropout and sampled negatives, per (epoch, batch): resumes exactly")
     save_every_seconds: float = _f(120.0, "save resumable state at least this often (and after every epoch)")
     threads: int = _f(2, "torch CPU threads")
+    device: str = _f("cpu", "torch device training runs on: 'cpu', 'cuda' or 'cuda:N' (rollout workers and "
+                     "evaluation stay on the CPU)")
     mirror: float = _f(0.0, "probability that a training episode is mirrored east-west (images flipped, left and "
                        "right swapped; not in the paper: docs/design.md); 0 = off")
 
@@ -283,6 +286,8 @@ class TrainConfig:
         _check(self.learning_rate > 0 and self.weight_decay >= 0, "train.learning_rate > 0, weight_decay >= 0")
         _check(self.save_every_seconds >= 0, "train.save_every_seconds must be >= 0")
         _check(self.threads >= 1, "train.threads must be >= 1")
+        _check(self.device == "cpu" or re.fullmatch(r"cuda(:\d+)?", self.device) is not None,
+               "train.device must be 'cpu', 'cuda' or 'cuda:N'")
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ several timed runs after warm-up. Inputs are random images with plausible camera
 on the pixels.
 
     python scripts/bench_model.py [--threads 2] [--batch 16] [--steps 8] [--repeats 7] [--kinds gsmn gs-fpv ...]
+                                  [--device cuda]    # training on a GPU (inference stays on the CPU, as it runs)
 
 By default the process keeps freed memory in its heap (gsmn.model.runtime.keep_freed_memory), as a training
 process should; --plain-malloc measures without.
@@ -101,18 +102,21 @@ def bench_inference(kind: str, config, vocabulary: Vocabulary, repeats: int) -> 
     return median_time(episode, repeats) / batch.steps
 
 
-def bench_training(kind: str, config, vocabulary: Vocabulary, B: int, T: int, repeats: int) -> float:
+def bench_training(kind: str, config, vocabulary: Vocabulary, B: int, T: int, repeats: int,
+                   device: str = "cpu") -> float:
     """Training frames (B*T) per second."""
-    model = build_model(kind, config, vocabulary).train()
+    model = build_model(kind, config, vocabulary).to(device).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-7)
-    batch = random_batch(B, T, vocabulary, np.random.default_rng(0))
-    generator = torch.Generator().manual_seed(0)
+    batch = random_batch(B, T, vocabulary, np.random.default_rng(0)).to(device)
+    generator = torch.Generator(device=device).manual_seed(0)
 
     def step():
         optimizer.zero_grad(set_to_none=True)
         outputs = forward_batch(model, batch, generator)
         compute_losses(model, batch, outputs, LossConfig(), generator=generator).total.backward()
         optimizer.step()
+        if device != "cpu":
+            torch.cuda.synchronize(device)
 
     return B * T / median_time(step, repeats, warmup=1)
 
@@ -126,6 +130,7 @@ def main() -> None:
     parser.add_argument("--kinds", nargs="+", default=["gsmn", "gs-fpv", "gs-fpv-mem"])
     parser.add_argument("--no-channels-last", action="store_true", help="run the ResNet in NCHW")
     parser.add_argument("--plain-malloc", action="store_true", help="leave glibc malloc's defaults")
+    parser.add_argument("--device", default="cpu", help="where training is timed: cpu, cuda or cuda:N")
     args = parser.parse_args()
     tuned = False if args.plain_malloc else keep_freed_memory()
     torch.set_num_threads(args.threads)
@@ -134,14 +139,15 @@ def main() -> None:
         config = dataclasses.replace(config, model=dataclasses.replace(config.model, channels_last=False))
     vocabulary = Vocabulary.default()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, channels_last={config.model.channels_last}, "
-          f"keep_freed_memory={tuned}")
+          f"keep_freed_memory={tuned}, training on {args.device}"
+          + (f" ({torch.cuda.get_device_name(args.device)})" if args.device != "cpu" else ""))
     bf16 = dataclasses.replace(config, model=dataclasses.replace(config.model, inference_bf16=True))
     print(f"{'kind':<12} {'inference ms/step (B=1)':>24} {'same, bf16 ResNet':>18} "
           f"{f'training frames/s (B={args.batch}, T={args.steps})':>34}")
     for kind in args.kinds:
         inference = bench_inference(kind, config, vocabulary, args.repeats)
         inference_bf16 = bench_inference(kind, bf16, vocabulary, args.repeats)
-        training = bench_training(kind, config, vocabulary, args.batch, args.steps, args.repeats)
+        training = bench_training(kind, config, vocabulary, args.batch, args.steps, args.repeats, args.device)
         print(f"{kind:<12} {inference * 1000:>24.2f} {inference_bf16 * 1000:>18.2f} {training:>34.1f}", flush=True)
 
 

@@ -53,6 +53,18 @@ def code_version() -> str:
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
+def on_cpu(value: Any) -> Any:
+    """A state_dict (nested dicts, lists and tensors) with its tensors on the CPU: what a run trained on a GPU saves,
+    so that a machine without one reads it."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: on_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(on_cpu(v) for v in value)
+    return value
+
+
 def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabulary: Vocabulary,
                     meta: dict[str, Any] | None = None, optimizer_state: dict[str, Any] | None = None) -> Path:
     """Write a checkpoint folder atomically (replacing an existing checkpoint there). `meta` is free-form JSON
@@ -77,7 +89,7 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
         (tmp / "vocabulary.json").write_text(vocabulary.to_json() + "\n")
         (tmp / "meta.json").write_text(json.dumps(full_meta, indent=1, sort_keys=True) + "\n")
         if optimizer_state is not None:
-            torch.save(optimizer_state, tmp / OPTIMIZER_FILE)
+            torch.save(on_cpu(optimizer_state), tmp / OPTIMIZER_FILE)
         if folder.exists():
             old = folder.parent / f".{folder.name}.old-{uuid.uuid4().hex[:8]}"
             os.rename(folder, old)
@@ -171,7 +183,7 @@ def load_optimizer_state(folder: str | Path) -> dict[str, Any]:
                               "without one, so training from it must start a fresh optimizer (leave out "
                               "--init-optimizer)")
     try:
-        return torch.load(path, weights_only=True)
+        return torch.load(path, weights_only=True, map_location="cpu")  # Adam moves it onto its parameters' device
     except Exception as e:  # unpickling errors come in many types
         raise CheckpointError(f"checkpoint {folder}: {OPTIMIZER_FILE} is unreadable ({e})") from e
 

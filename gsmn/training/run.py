@@ -29,6 +29,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from gsmn.config import RunConfig
+from gsmn.model.checkpoint import on_cpu
 
 
 class RunError(ValueError):
@@ -49,7 +50,9 @@ class TrainState:
 
 
 EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
-ADJUSTABLE = (("train", "mirror"),)  # may change when a run resumes: what the next batches see, not what was saved
+# may change when a run resumes: what the next batches see, and where they are computed, not what was saved
+ADJUSTABLE = (("train", "mirror"), ("train", "device"))
+
 
 
 def _normalised(saved: dict) -> dict:
@@ -99,8 +102,8 @@ class RunFolder:
     def start(self, config: RunConfig) -> None:
         """Create the folder, or check that an existing one was made with the same configuration. The changes
         allowed are a longer run (more `train.epochs` or `dagger.iterations`, see EXTENDABLE) and the settings in
-        ADJUSTABLE (the mirror augmentation): the run continues from its saved state and the new configuration is
-        recorded. Fields added to the configuration since the run was saved take their defaults."""
+        ADJUSTABLE (the mirror augmentation, the device): the run continues from its saved state and the new
+        configuration is recorded. Fields added to the configuration since the run was saved take their defaults."""
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / "config.json"
         new = json.loads(config.to_json())
@@ -121,8 +124,9 @@ class RunFolder:
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir()
-        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, tmp / "weights.safetensors")
-        torch.save(optimizer.state_dict(), tmp / "optimizer.pt")
+        weights = {k: v.contiguous() for k, v in on_cpu(model.state_dict()).items()}
+        save_file(weights, tmp / "weights.safetensors")
+        torch.save(on_cpu(optimizer.state_dict()), tmp / "optimizer.pt")
         (tmp / "state.json").write_text(json.dumps(asdict(state)))
         old = self.root / "state.old"
         if old.exists():
@@ -135,8 +139,8 @@ class RunFolder:
     def load_state(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> TrainState:
         if not (self.state_dir / "state.json").is_file() and (self.root / "state.old" / "state.json").is_file():
             (self.root / "state.old").rename(self.state_dir)  # killed between the two renames
-        model.load_state_dict(load_file(self.state_dir / "weights.safetensors"))
-        optimizer.load_state_dict(torch.load(self.state_dir / "optimizer.pt", weights_only=True))
+        model.load_state_dict(load_file(self.state_dir / "weights.safetensors"))  # copied onto the model's device
+        optimizer.load_state_dict(torch.load(self.state_dir / "optimizer.pt", weights_only=True, map_location="cpu"))
         return TrainState(**json.loads((self.state_dir / "state.json").read_text()))
 
     @property

@@ -44,9 +44,10 @@ def epoch_batches(keys: list[str], batch_size: int, seed: int, epoch: int) -> li
 def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vocabulary: Vocabulary,
                config: RunConfig, seed: int) -> dict[str, float]:
     """One optimizer step on a batch of episodes; returns the loss terms and accuracies as floats."""
-    torch.manual_seed(seed)  # dropout
-    generator = torch.Generator().manual_seed(seed)  # pose noise, sampled negatives
-    batch = collate(samples, vocabulary)
+    device = model_device(model)
+    torch.manual_seed(seed)  # dropout (on every device)
+    generator = torch.Generator(device=device).manual_seed(seed)  # pose noise, sampled negatives
+    batch = collate(samples, vocabulary).to(device)
     model.train()
     outputs = forward_batch(model, batch, generator=generator)
     losses = compute_losses(model, batch, outputs, config.loss, generator=generator)
@@ -54,6 +55,22 @@ def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vo
     losses.total.backward()
     optimizer.step()
     return flatten(losses, frames=int(batch.mask.sum()))
+
+
+def model_device(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+def training_device(name: str) -> torch.device:
+    """The torch device `train.device` names, refused with a clear message where this machine has none."""
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--train.device {name}: torch {torch.__version__} sees no CUDA device on this machine "
+                             "(use --train.device cpu)")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"--train.device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 def flatten(losses, frames: int) -> dict[str, float]:
@@ -68,12 +85,13 @@ def validate(model: Model, store: EpisodeStore, vocabulary: Vocabulary, config: 
              batch_size: int, seed: int = 0) -> dict[str, float]:
     """Mean loss terms and accuracies over a store, in eval mode, with fixed sampled negatives."""
     model.eval()
+    device = model_device(model)
     sums: dict[str, float] = {}
     counts: dict[str, int] = {}
     keys = store.keys()
     for k in range(0, len(keys), batch_size):
-        generator = torch.Generator().manual_seed(seed + k)
-        batch = collate([store.read(key) for key in keys[k:k + batch_size]], vocabulary)
+        generator = torch.Generator(device=device).manual_seed(seed + k)
+        batch = collate([store.read(key) for key in keys[k:k + batch_size]], vocabulary).to(device)
         outputs = forward_batch(model, batch, generator=generator)
         _accumulate(sums, counts, flatten(compute_losses(model, batch, outputs, config.loss, generator=generator),
                                           frames=int(batch.mask.sum())))
@@ -101,14 +119,15 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, in
     """The model (from `init`'s weights, or fresh from the config's seed) and its Adam. With `init_optimizer`,
     Adam starts from the state saved in `init` (its moments and step counts), with this config's learning rate
     and weight decay."""
+    device = training_device(config.train.device)
     if init is not None:
-        model, _, vocabulary, _ = load_checkpoint(init)
+        model, _, vocabulary, _ = load_checkpoint(init, device=device)
         if model.kind != kind:
             raise ValueError(f"--init {init} holds a {model.kind!r} model, not {kind!r}")
     else:
         vocabulary = Vocabulary.default()
         torch.manual_seed(config.train.seed)  # the initial weights, too, are a function of the config
-        model = build_model(kind, config, vocabulary)
+        model = build_model(kind, config, vocabulary).to(device)  # built on the CPU: the same weights everywhere
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.learning_rate,
                                  weight_decay=config.train.weight_decay)
     if init_optimizer:

@@ -1,0 +1,75 @@
+"""Training on a GPU (`--train.device cuda`): refused clearly where there is none; a run may move between devices
+when it resumes; and, where a CUDA device exists, a run trained there saves checkpoints a CPU-only machine reads,
+whose network computes what it computed there."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsmn.config import ConfigError, preset, with_overrides
+from gsmn.model.checkpoint import load_checkpoint
+from gsmn.training.collect import collect_expert
+from gsmn.training.run import RunFolder
+from gsmn.training.store import EpisodeStore
+from gsmn.training.supervised import train_supervised, validate
+
+FLAGS = {"task.horizon": "20", "train.epochs": "2", "train.batch_size": "2", "train.save_every_seconds": "0"}
+CONFIG = with_overrides(preset("tiny"), FLAGS)
+CUDA = torch.cuda.is_available()
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory) -> tuple[EpisodeStore, EpisodeStore]:
+    root = tmp_path_factory.mktemp("data")
+    train, dev = EpisodeStore(root / "train"), EpisodeStore(root / "dev")
+    collect_expert(train, [0, 1, 2, 3], CONFIG, workers=2)
+    collect_expert(dev, [85, 86], CONFIG)
+    return train, dev
+
+
+def test_the_device_setting_is_checked():
+    for bad in ("gpu", "cuda:", "cuda:x", "mps"):
+        with pytest.raises(ConfigError, match="train.device"):
+            with_overrides(CONFIG, {"train.device": bad})
+    assert with_overrides(CONFIG, {"train.device": "cuda:1"}).train.device == "cuda:1"
+
+
+@pytest.mark.skipif(CUDA, reason="this machine has a CUDA device")
+def test_a_run_on_a_missing_gpu_is_refused_by_name_and_saves_nothing(stores, tmp_path):
+    train, dev = stores
+    with pytest.raises(ValueError, match="--train.device cuda: torch .* sees no CUDA device"):
+        train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.device": "cuda"}), train, dev)
+    assert not RunFolder(tmp_path / "run").has_state()
+
+
+def test_a_run_may_change_its_device_when_it_resumes(tmp_path):
+    """The device decides where the next batches are computed, not what was saved (which is always on the CPU)."""
+    run = RunFolder(tmp_path / "run")
+    run.start(CONFIG)
+    run.start(with_overrides(CONFIG, {"train.device": "cuda"}))
+    assert RunFolder(tmp_path / "run").root.joinpath("config.json").read_text().count('"cuda"') == 1
+    run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.epochs": "3"}))
+
+
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+def test_a_run_trained_on_the_gpu_is_read_on_the_cpu_and_computes_the_same(stores, tmp_path):
+    train, dev = stores
+    on_gpu = with_overrides(CONFIG, {"train.device": "cuda"})
+    checkpoint = train_supervised(tmp_path / "gpu", "gsmn", on_gpu, train, dev, log=lambda s: None)
+    log = RunFolder(tmp_path / "gpu").read_log()
+    assert [r["epoch"] for r in log] == [1, 2] and log[-1]["train"]["loss"] < log[0]["train"]["loss"]
+    # Every saved tensor is on the CPU: a machine without CUDA loads them without a map_location.
+    for path in (checkpoint / "optimizer.pt", tmp_path / "gpu" / "state" / "optimizer.pt"):
+        state = torch.load(path, weights_only=True)["state"]
+        assert state and all(t.device.type == "cpu" for s in state.values() for t in s.values()), path
+    cpu_model, config, vocabulary, _ = load_checkpoint(checkpoint)
+    gpu_model, _, _, _ = load_checkpoint(checkpoint, device="cuda")
+    assert next(cpu_model.parameters()).device.type == "cpu"
+    on_cpu, on_cuda = (validate(m, dev, vocabulary, config, 2) for m in (cpu_model, gpu_model))
+    for name in ("loss_action", "loss_perception", "loss_grounding"):
+        assert on_cuda[name] == pytest.approx(on_cpu[name], rel=2e-2, abs=1e-4), name
+    # The run goes on, on the CPU, from the state it saved on the GPU.
+    longer = with_overrides(CONFIG, {"train.epochs": "3"})
+    train_supervised(tmp_path / "gpu", "gsmn", longer, train, dev, log=lambda s: None)
+    assert [r["epoch"] for r in RunFolder(tmp_path / "gpu").read_log()] == [1, 2, 3]
