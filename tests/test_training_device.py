@@ -10,6 +10,7 @@ import torch
 from gsmn.config import ConfigError, preset, with_overrides
 from gsmn.model.checkpoint import load_checkpoint
 from gsmn.training.collect import collect_expert
+from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunFolder
 from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import train_supervised, validate
@@ -73,3 +74,19 @@ def test_a_run_trained_on_the_gpu_is_read_on_the_cpu_and_computes_the_same(store
     longer = with_overrides(CONFIG, {"train.epochs": "3"})
     train_supervised(tmp_path / "gpu", "gsmn", longer, train, dev, log=lambda s: None)
     assert [r["epoch"] for r in RunFolder(tmp_path / "gpu").read_log()] == [1, 2, 3]
+
+
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+def test_dagger_trains_on_the_gpu_while_its_rollouts_fly_on_the_cpu(stores, tmp_path):
+    """The policy the rollout workers load (run/policy, written from the GPU model) is read on the CPU."""
+    train, dev = stores
+    dagger = with_overrides(CONFIG, {"train.epochs": "1", "dagger.iterations": "2",  # rollouts before M: checked
+                                     "dagger.rollouts_per_iteration": "2", "dagger.dataset_size": "3",
+                                     "dagger.beta0": "0.5", "dagger.workers": "1"})
+    start = train_supervised(tmp_path / "sup", "gsmn", dagger, train, log=lambda s: None)  # on the CPU
+    checkpoint = train_dagger(tmp_path / "dagger", start, with_overrides(dagger, {"train.device": "cuda"}), train,
+                              dev, log=lambda s: None)
+    log = RunFolder(tmp_path / "dagger").read_log()
+    assert [r["iteration"] for r in log] == [1, 2] and log[1]["learner_step_fraction"] > 0
+    model, config, _, _ = load_checkpoint(checkpoint)
+    assert config.train.device == "cuda" and next(model.parameters()).device.type == "cpu"
