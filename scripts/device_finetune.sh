@@ -3,17 +3,21 @@
 # one H100, 16 cores, no registries reachable, 10 minutes a call), and bring back the epochs' checkpoints.
 #
 #   bash scripts/device_finetune.sh IDS-FILE [TRAIN-ARGS...]     # e.g. IDS-FILE=runs/device21/ids.txt
+#   MODE=dagger bash scripts/device_finetune.sh IDS-FILE --init checkpoints/gsmn [TRAIN-ARGS...]
 #
 # IDS-FILE holds the train environments to collect, comma-separated, in order (collection stops after COLLECT_S
 # seconds, keeping whole episodes only). TRAIN-ARGS are added to `gsmn train supervised` (e.g. --init
-# checkpoints/gsmn --train.learning-rate 0.0001 --train.mirror 0.5); training stops after TRAIN_S seconds. Set-up
+# checkpoints/gsmn --train.learning-rate 0.0001 --train.mirror 0.5); training stops after TRAIN_S seconds. With
+# MODE=dagger the episodes collected are DAggerFM's expert data D*, its rollouts fly in IDS-FILE's environments
+# on WORKERS processes (CPU) and its epochs run on the GPU; a copy is kept after every iteration. Set-up
 # as in scripts/device_eval.sh (carry [".whl", ".gl"] and the folder of IDS-FILE). Steps, each logged with its
 # time into $OUT/call.log:
 #   1. tests/test_training_device.py (its CUDA test runs only there) and the training benchmark
 #   2. the 40 dev episodes (data/expert_dev's) and the fresh train episodes, WORKERS processes
 #   3. `gsmn train supervised --train.device $DEVICE --train.batch-size 1`, a copy of the checkpoint after
 #      every epoch (scripts/keep_iterations.py)
-#   4. $OUT/ft_epochs.tgz (ft_itN: every epoch's checkpoint, 1.9 MB each), $OUT/ft_log.jsonl, $OUT/fresh_keys.txt
+#   4. $OUT/ft_epochs.tgz (ft_itN: every epoch's or iteration's checkpoint, 1.9 MB each), $OUT/ft_log.jsonl,
+#      $OUT/fresh_keys.txt
 # Measured (2026-11-27, H100): 17.8 expert episodes/s with 16 workers; 961 training frames/s with the data read.
 # Here (DEVICE=cpu PY=.venv/bin/python WORKERS=2 and short caps) it runs the same steps, to try it.
 set -u
@@ -23,6 +27,7 @@ OUT=${OUT:-/tmp/out}
 COLLECT_S=${COLLECT_S:-150}
 TRAIN_S=${TRAIN_S:-270}
 DEVICE=${DEVICE:-cuda}
+MODE=${MODE:-supervised}
 WORKERS=${WORKERS:-16}
 PY=${PY:-python3}
 W=${W:-/tmp/device_finetune}
@@ -60,12 +65,17 @@ timeout -s TERM -k 40 "$COLLECT_S" $PY -m gsmn.cli collect --out "$W/fresh" --en
 tail -c 400 "$W/collect.log" | tr '\r' '\n' | tail -2 | tee -a "$L"
 stamp "collected $(ls "$W/fresh" | grep -c 'npz$') episodes, $(du -sh "$W/fresh" | cut -f1)"
 
-stamp "3. train on them ($DEVICE; $*) for $TRAIN_S s"
+stamp "3. $MODE on them ($DEVICE; $*) for $TRAIN_S s"
 $PY scripts/keep_iterations.py "$W/ft" --every 2 > "$W/keep.log" 2>&1 &
 keep=$!
-timeout -s TERM -k 30 "$TRAIN_S" $PY -m gsmn.cli train supervised --kind gsmn --data "$W/fresh" --dev "$W/dev" \
-    --run "$W/ft" --train.device "$DEVICE" --train.batch-size 1 --train.epochs 40 --train.threads 4 \
-    --train.save-every-seconds 60 "$@" 2>&1 | tr '\r' '\n' | grep -v ' training: ' | tail -45 | tee -a "$L"
+if [ "$MODE" = dagger ]; then
+    train=(train dagger --env-ids "$(cat "$IDS")" --dagger.workers "$WORKERS" --dagger.iterations 1000)
+else
+    train=(train supervised --kind gsmn --train.epochs 40)
+fi
+timeout -s TERM -k 30 "$TRAIN_S" $PY -m gsmn.cli "${train[@]}" --data "$W/fresh" --dev "$W/dev" --run "$W/ft" \
+    --train.device "$DEVICE" --train.batch-size 1 --train.threads 4 --train.save-every-seconds 60 "$@" 2>&1 \
+    | tr '\r' '\n' | grep -v '%|' | tail -45 | tee -a "$L"
 sleep 3
 kill "$keep"
 stamp "epoch copies: $(ls -d "$W"/ft_it* 2>/dev/null | wc -l)"
