@@ -16,24 +16,14 @@ from safetensors.torch import load_file
 
 from gsmn.config import preset, with_overrides
 from gsmn.model.checkpoint import CheckpointError, load_checkpoint
-from gsmn.training.collect import collect_expert
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunError, RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import make_model_and_optimizer, train_supervised
 
-# Short episodes (the first 20 steps of the expert's flight) keep these tests to seconds.
+# Short episodes (the first 20 steps of the expert's flight, conftest.py's `stores`) keep these tests to seconds.
 FLAGS = {"task.horizon": "20", "train.epochs": "3", "train.batch_size": "2", "train.save_every_seconds": "0"}
 CONFIG = with_overrides(preset("tiny"), FLAGS)
-
-
-@pytest.fixture(scope="module")
-def stores(tmp_path_factory) -> tuple[EpisodeStore, EpisodeStore]:
-    root = tmp_path_factory.mktemp("data")
-    train, dev = EpisodeStore(root / "train"), EpisodeStore(root / "dev")
-    collect_expert(train, [0, 1, 2, 3], CONFIG, workers=2)
-    collect_expert(dev, [85, 86], CONFIG)
-    return train, dev
 
 
 def test_tiny_preset_trains_end_to_end_and_its_loss_falls(stores, tmp_path):

@@ -9,24 +9,13 @@ import torch
 
 from gsmn.config import ConfigError, preset, with_overrides
 from gsmn.model.checkpoint import load_checkpoint
-from gsmn.training.collect import collect_expert
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunFolder
-from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import train_supervised, validate
 
 FLAGS = {"task.horizon": "20", "train.epochs": "2", "train.batch_size": "2", "train.save_every_seconds": "0"}
 CONFIG = with_overrides(preset("tiny"), FLAGS)
 CUDA = torch.cuda.is_available()
-
-
-@pytest.fixture(scope="module")
-def stores(tmp_path_factory) -> tuple[EpisodeStore, EpisodeStore]:
-    root = tmp_path_factory.mktemp("data")
-    train, dev = EpisodeStore(root / "train"), EpisodeStore(root / "dev")
-    collect_expert(train, [0, 1, 2, 3], CONFIG, workers=2)
-    collect_expert(dev, [85, 86], CONFIG)
-    return train, dev
 
 
 def test_the_device_setting_is_checked():
