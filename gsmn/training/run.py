@@ -54,7 +54,6 @@ EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
 ADJUSTABLE = (("train", "mirror"), ("train", "device"))
 
 
-
 def _normalised(saved: dict) -> dict:
     """A saved config.json with the defaults of fields added since it was written (an older run resumes)."""
     try:
