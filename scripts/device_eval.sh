@@ -26,15 +26,7 @@ set -uo pipefail
 OUT=${OUT:-/tmp/out}
 W=/tmp/device_eval
 mkdir -p "$OUT" "$W"
-if [ ! -d /tmp/site/mujoco ]; then
-    for f in .gl/*.deb; do dpkg -x "$f" /; done
-    ldconfig
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || exit 1
-fi
-export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
-vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-[ -f "$vendor" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
+source scripts/device_setup.sh || exit 1
 { date -u; nvidia-smi -L; lscpu | grep 'Model name'; nproc
   python3 -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__, 'trimesh', trimesh.__version__)"
 } 2>&1 | tee -a "$W/machine.txt"

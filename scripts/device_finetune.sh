@@ -10,8 +10,8 @@
 # checkpoints/gsmn --train.learning-rate 0.0001 --train.mirror 0.5); training stops after TRAIN_S seconds. With
 # MODE=dagger the episodes collected are DAggerFM's expert data D*, its rollouts fly in IDS-FILE's environments
 # on WORKERS processes (CPU) and its epochs run on the GPU; a copy is kept after every iteration. Set-up
-# as in scripts/device_eval.sh (carry [".whl", ".gl"] and the folder of IDS-FILE). Steps, each logged with its
-# time into $OUT/call.log:
+# as in scripts/device_eval.sh (scripts/device_setup.sh; carry [".whl", ".gl"] and the folder of IDS-FILE).
+# Steps, each logged with its time into $OUT/call.log:
 #   1. tests/test_training_device.py (its CUDA test runs only there) and the training benchmark
 #   2. the 40 dev episodes (data/expert_dev's) and the fresh train episodes, WORKERS processes
 #   3. `gsmn train supervised --train.device $DEVICE --train.batch-size 1`, a copy of the checkpoint after
@@ -33,16 +33,8 @@ PY=${PY:-python3}
 W=${W:-/tmp/device_finetune}
 mkdir -p "$OUT" "$W"
 L=$OUT/call.log
-if [ "$DEVICE" != cpu ] && [ ! -d /tmp/site/mujoco ]; then
-    for f in .gl/*.deb; do dpkg -x "$f" /; done
-    ldconfig
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || exit 1
-fi
 if [ "$DEVICE" != cpu ]; then
-    export PYTHONPATH=/tmp/site:$PWD
-    vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-    [ -f "$vendor" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
+    source scripts/device_setup.sh || exit 1
 fi
 export MUJOCO_GL=egl PYTHONUNBUFFERED=1
 t0=$SECONDS

@@ -41,8 +41,12 @@ def stop_step(stop_probability: np.ndarray, tau: float, last: int) -> int:
 
 def outcome(episode: dict, stop_probability: np.ndarray, tau: float, radius: float) -> tuple[bool, bool, bool]:
     """(success, landmark success, said STOP) of the episode flown with threshold tau <= 0.5."""
+    return outcome_at(episode, stop_step(stop_probability, tau, len(episode["trajectory"]) - 1), radius)
+
+
+def outcome_at(episode: dict, t: int, radius: float) -> tuple[bool, bool, bool]:
+    """(success, landmark success, said STOP) of the episode ended at step t of its recorded flight."""
     last = len(episode["trajectory"]) - 1
-    t = stop_step(stop_probability, tau, last)
     xy = episode["trajectory"][t][:2]
     landmark, start = (episode["landmark_x"], episode["landmark_y"]), (episode["start_x"], episode["start_y"])
     stopped = t < last or episode["stopped"]
@@ -55,7 +59,7 @@ def flown_at(episode: dict, stop_probability: np.ndarray, tau: float, radius: fl
     t = stop_step(stop_probability, tau, last)
     if t == last:
         return dict(episode)
-    ok, at_landmark, _ = outcome(episode, stop_probability, tau, radius)
+    ok, at_landmark, _ = outcome_at(episode, t, radius)
     x, y = episode["trajectory"][t][:2]
     actions = [list(a) for a in episode["actions"][:t + 1]]
     actions[-1][2] = True

@@ -65,6 +65,11 @@ def on_cpu(value: Any) -> Any:
     return value
 
 
+def cpu_weights(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The model's state_dict as contiguous CPU tensors, as safetensors files hold them."""
+    return {k: v.contiguous() for k, v in on_cpu(model.state_dict()).items()}
+
+
 def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabulary: Vocabulary,
                     meta: dict[str, Any] | None = None, optimizer_state: dict[str, Any] | None = None) -> Path:
     """Write a checkpoint folder atomically (replacing an existing checkpoint there). `meta` is free-form JSON
@@ -83,8 +88,8 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
     tmp = folder.parent / f".{folder.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-        save_file(tensors, str(tmp / "weights.safetensors"), metadata={"kind": model.kind, "format": str(FORMAT)})
+        save_file(cpu_weights(model), str(tmp / "weights.safetensors"),
+                  metadata={"kind": model.kind, "format": str(FORMAT)})
         (tmp / "config.json").write_text(config.to_json() + "\n")
         (tmp / "vocabulary.json").write_text(vocabulary.to_json() + "\n")
         (tmp / "meta.json").write_text(json.dumps(full_meta, indent=1, sort_keys=True) + "\n")

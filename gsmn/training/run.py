@@ -29,7 +29,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from gsmn.config import RunConfig
-from gsmn.model.checkpoint import on_cpu
+from gsmn.model.checkpoint import cpu_weights, on_cpu
 
 
 class RunError(ValueError):
@@ -123,8 +123,7 @@ class RunFolder:
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir()
-        weights = {k: v.contiguous() for k, v in on_cpu(model.state_dict()).items()}
-        save_file(weights, tmp / "weights.safetensors")
+        save_file(cpu_weights(model), tmp / "weights.safetensors")
         torch.save(on_cpu(optimizer.state_dict()), tmp / "optimizer.pt")
         (tmp / "state.json").write_text(json.dumps(asdict(state)))
         old = self.root / "state.old"
