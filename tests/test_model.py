@@ -31,6 +31,7 @@ from gsmn.model import (
     save_checkpoint,
 )
 from gsmn.model.checkpoint import average_checkpoints
+from gsmn.model.fpv import memory_from_fpv
 from gsmn.model.labels import make_labels
 from gsmn.model.losses import TERMS
 from gsmn.model.noise import perturb_poses
@@ -452,6 +453,25 @@ def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
         with pytest.raises(CheckpointError, match=f"{bad}.*differs"):
             average_checkpoints([a, bad], tmp_path / "bad")
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_memory_baseline_warm_started_from_gs_fpv_flies_as_it_and_can_learn_to_use_its_memory(batch):
+    """memory_from_fpv: GS-FPV-MEM made from a GS-FPV computes the same actions; the training loss
+    reaches the perceptron's (zero) weights on the LSTM, so the memory can come to matter."""
+    fpv = seeded_model("gs-fpv", seed=3).eval()
+    mem = memory_from_fpv(fpv).eval()
+    assert mem.kind == "gs-fpv-mem" and mem.memory is not None
+    with torch.inference_mode():
+        a, b = forward_batch(fpv, batch), forward_batch(mem, batch)
+    assert b.memory.abs().max() > 0  # the LSTM runs; the perceptron ignores it
+    for name in ("v", "omega", "stop_logit", "relevance_map_c", "goal_map_c"):
+        torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="needs a GS-FPV"):
+        memory_from_fpv(mem)
+    grads = grads_of(mem.train(), batch, LossConfig())
+    n_in = fpv.perceptron.hidden.in_features
+    on_memory = grads["perceptron.out.weight"][:, n_in:n_in + TINY.model.fpv_memory]
+    assert on_memory.abs().sum() > 0
 
 
 def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path, monkeypatch):

@@ -110,3 +110,32 @@ class GSFPV(nn.Module):
              kernels: InstructionKernels | None = None) -> tuple[FPVOutputs, MemoryState]:
         """One step for B drones (see GSMN.step); the state is the LSTM's (h, c), None at the first step."""
         return self._run(image[:, None], poses[:, None], sentence_embedding, state, kernels)
+
+
+def memory_from_fpv(fpv: GSFPV, seed: int = 0) -> GSFPV:
+    """A GS-FPV-MEM that computes exactly the actions of a trained GS-FPV (a warm start; not in the paper).
+
+    Every weight the two share is copied; the LSTM keeps a fresh initialisation (seeded); the perceptron's weights
+    on the LSTM's outputs are zero, so the memory has no say until training gives it one. The perceptron's input
+    is [maps; sentence] in GS-FPV and [maps; sentence; memory] in GS-FPV-MEM, its output layer's
+    [inputs; hidden] likewise (docs/training.md, "GS-FPV-MEM warm-started from GS-FPV").
+    """
+    if fpv.memory is not None:
+        raise ValueError(f"memory_from_fpv needs a GS-FPV; this is a {fpv.kind!r}")
+    torch.manual_seed(seed)
+    mem = GSFPV(fpv.config, fpv.encoder.embedding.num_embeddings, memory=True).to(next(fpv.parameters()).device)
+    source, n_memory = fpv.state_dict(), fpv.config.model.fpv_memory
+    n_in = source["perceptron.hidden.weight"].shape[1]  # maps + sentence embedding
+    state = {}
+    for name, tensor in mem.state_dict().items():
+        if name.startswith("memory."):
+            state[name] = tensor
+        elif name in ("perceptron.hidden.weight", "perceptron.out.weight"):
+            w = torch.zeros_like(tensor)
+            w[:, :n_in] = source[name][:, :n_in]
+            w[:, n_in + n_memory:] = source[name][:, n_in:]  # the output layer's hidden units; none for `hidden`
+            state[name] = w
+        else:
+            state[name] = source[name]
+    mem.load_state_dict(state, strict=True)
+    return mem.train(fpv.training)
