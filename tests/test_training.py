@@ -192,7 +192,9 @@ def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervis
     train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None,
                  stop_after=lambda state: state.batch > 0 and next(stops, False))
     assert not (tmp_path / "parts" / "log.jsonl").is_file() or len(RunFolder(tmp_path / "parts").read_log()) < 2
-    parts = train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None)
+    # Resumed with another number of rollout workers (rollouts are seeded each, not per worker): nothing changes.
+    more_workers = with_overrides(DAGGER, {"dagger.workers": "2"})
+    parts = train_dagger(tmp_path / "parts", supervised_checkpoint, more_workers, train, log=lambda s: None)
     a, b = load_file(whole / "weights.safetensors"), load_file(parts / "weights.safetensors")
     assert all(torch.equal(a[k], b[k]) for k in a)
 

@@ -35,12 +35,14 @@ def test_a_run_on_a_missing_gpu_is_refused_by_name_and_saves_nothing(stores, tmp
     assert not RunFolder(tmp_path / "run").has_state()
 
 
-def test_a_run_may_change_its_device_when_it_resumes(tmp_path):
-    """The device decides where the next batches are computed, not what was saved (which is always on the CPU)."""
+def test_a_run_may_change_its_device_and_threads_when_it_resumes(tmp_path):
+    """The device and the thread count decide where and how fast the next batches are computed, not what was saved
+    (which is always on the CPU)."""
     run = RunFolder(tmp_path / "run")
     run.start(CONFIG)
     run.start(with_overrides(CONFIG, {"train.device": "cuda"}))
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["device"] == "cuda"
+    run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.threads": "1"}))
     run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.epochs": "3"}))
 
 

@@ -51,7 +51,8 @@ class TrainState:
 
 EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
 # may change when a run resumes: what the next batches see, and where they are computed, not what was saved
-ADJUSTABLE = (("train", "mirror"), ("train", "device"))
+# (rollouts are seeded per rollout, not per worker, so the number of workers changes no flight)
+ADJUSTABLE = (("train", "mirror"), ("train", "device"), ("train", "threads"), ("dagger", "workers"))
 
 
 def _normalised(saved: dict) -> dict:
