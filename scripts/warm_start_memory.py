@@ -23,10 +23,12 @@ from gsmn.model.fpv import memory_from_fpv
 
 def warm_start_memory(fpv_folder: str | Path, out: str | Path, seed: int = 0) -> Path:
     """Write a GS-FPV-MEM checkpoint at `out` that computes the same actions as the GS-FPV at `fpv_folder`."""
-    fpv, config, vocabulary, meta = load_checkpoint(fpv_folder)
-    if meta["kind"] != "gs-fpv":
-        raise SystemExit(f"{fpv_folder} holds a {meta['kind']!r} checkpoint; a warm start needs a 'gs-fpv' one")
-    return save_checkpoint(out, memory_from_fpv(fpv, seed), config, vocabulary,
+    fpv, config, vocabulary, _ = load_checkpoint(fpv_folder)
+    try:
+        mem = memory_from_fpv(fpv, seed)
+    except ValueError as e:
+        raise SystemExit(f"{fpv_folder}: {e}") from e
+    return save_checkpoint(out, mem, config, vocabulary,
                            meta={"warm_started_from": str(fpv_folder), "lstm_seed": seed})
 
 

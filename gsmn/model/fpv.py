@@ -120,10 +120,12 @@ def memory_from_fpv(fpv: GSFPV, seed: int = 0) -> GSFPV:
     is [maps; sentence] in GS-FPV and [maps; sentence; memory] in GS-FPV-MEM, its output layer's
     [inputs; hidden] likewise (docs/training.md, "GS-FPV-MEM warm-started from GS-FPV").
     """
-    if fpv.memory is not None:
-        raise ValueError(f"memory_from_fpv needs a GS-FPV; this is a {fpv.kind!r}")
-    torch.manual_seed(seed)
-    mem = GSFPV(fpv.config, fpv.encoder.embedding.num_embeddings, memory=True).to(next(fpv.parameters()).device)
+    if getattr(fpv, "kind", None) != "gs-fpv":
+        raise ValueError(f"memory_from_fpv needs a GS-FPV; this is a {getattr(fpv, 'kind', type(fpv).__name__)!r}")
+    with torch.random.fork_rng(devices=[]):  # seeds the LSTM's initialisation without touching the caller's RNG
+        torch.manual_seed(seed)
+        mem = GSFPV(fpv.config, fpv.encoder.embedding.num_embeddings, memory=True)
+    mem = mem.to(next(fpv.parameters()).device)
     source, n_memory = fpv.state_dict(), fpv.config.model.fpv_memory
     n_in = source["perceptron.hidden.weight"].shape[1]  # maps + sentence embedding
     state = {}
