@@ -152,6 +152,34 @@ def test_a_killed_run_resumes_to_the_same_state_as_an_uninterrupted_one(stores, 
     assert [json.loads(x)["train"]["loss"] for x in log_a] == [json.loads(x)["train"]["loss"] for x in log_b]
 
 
+def test_a_memory_only_run_trains_the_memory_and_leaves_every_other_weight_as_it_was(stores, tmp_path):
+    """train.trainable memory: a GS-FPV-MEM's LSTM and the perceptron's columns on its outputs train; every other
+    weight (the rest of the perceptron included, despite Adam's weight decay) stays bit for bit, also across a
+    resumption; a model without a memory is refused."""
+    train, _ = stores
+    one = with_overrides(CONFIG, {"train.epochs": "1", "train.trainable": "memory"})
+    initial = {k: v.clone() for k, v in make_model_and_optimizer("gs-fpv-mem", one, None)[0].state_dict().items()}
+    train_supervised(tmp_path / "run", "gs-fpv-mem", one, train, log=lambda s: None)
+    two = with_overrides(one, {"train.epochs": "2"})  # resumes the finished run: Adam's two groups reload
+    final = load_file(train_supervised(tmp_path / "run", "gs-fpv-mem", two, train, log=lambda s: None)
+                      / "weights.safetensors")
+    n_memory = CONFIG.model.fpv_memory
+    n_in = initial["perceptron.hidden.weight"].shape[1] - n_memory
+    for name, before in initial.items():
+        after = final[name]
+        if name.startswith("memory."):
+            assert not torch.equal(after, before), name
+        elif name in ("perceptron.hidden.weight", "perceptron.out.weight"):
+            columns = slice(n_in, n_in + n_memory)
+            assert not torch.equal(after[:, columns], before[:, columns]), name
+            assert torch.equal(after[:, :n_in], before[:, :n_in]) and torch.equal(after[:, n_in + n_memory:],
+                                                                                   before[:, n_in + n_memory:]), name
+        else:
+            assert torch.equal(after, before), name
+    with pytest.raises(ValueError, match="needs a GS-FPV-MEM"):
+        make_model_and_optimizer("gs-fpv", one, None)
+
+
 DAGGER = with_overrides(CONFIG, {"train.epochs": "1", "dagger.iterations": "2", "dagger.rollouts_per_iteration": "2",
                                  "dagger.dataset_size": "3", "dagger.beta0": "0.5", "dagger.workers": "1"})
 

@@ -141,3 +141,27 @@ def memory_from_fpv(fpv: GSFPV, seed: int = 0) -> GSFPV:
             state[name] = source[name]
     mem.load_state_dict(state, strict=True)
     return mem.train(fpv.training)
+
+
+def freeze_all_but_memory(model: GSFPV) -> tuple[list[nn.Parameter], list[nn.Parameter]]:
+    """Freeze a GS-FPV-MEM except its memory's path (`train.trainable memory`; not in the paper): the LSTM and the
+    perceptron's weights on the LSTM's outputs (the memory's columns of its hidden and output layers). Returns
+    (the LSTM's parameters, the two perceptron weights). The perceptron's weights keep requires_grad, but a hook
+    zeroes their gradients outside the memory's columns; give them no weight decay, so that Adam leaves those
+    entries exactly as they are (a zero gradient and zero moments give a zero step)."""
+    if getattr(model, "memory", None) is None:
+        raise ValueError(f"train.trainable memory needs a GS-FPV-MEM; this is a {getattr(model, 'kind', '?')!r}")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    lstm = list(model.memory.parameters())
+    for p in lstm:
+        p.requires_grad_(True)
+    n_in = model.perceptron.hidden.in_features - model.config.model.fpv_memory  # maps + sentence embedding
+    columns = slice(n_in, n_in + model.config.model.fpv_memory)
+    masked = [model.perceptron.hidden.weight, model.perceptron.out.weight]
+    for weight in masked:
+        mask = torch.zeros_like(weight)
+        mask[:, columns] = 1.0
+        weight.requires_grad_(True)
+        weight.register_hook(lambda grad, mask=mask: grad * mask)
+    return lstm, masked

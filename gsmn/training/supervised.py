@@ -20,6 +20,7 @@ import torch
 from gsmn.config import RunConfig
 from gsmn.model.batch import collate
 from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_optimizer_state, save_checkpoint, with_model_of
+from gsmn.model.fpv import freeze_all_but_memory
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
 from gsmn.model.vocabulary import Vocabulary
@@ -128,8 +129,13 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, in
         vocabulary = Vocabulary.default()
         torch.manual_seed(config.train.seed)  # the initial weights, too, are a function of the config
         model = build_model(kind, config, vocabulary).to(device)  # built on the CPU: the same weights everywhere
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.learning_rate,
-                                 weight_decay=config.train.weight_decay)
+    lr, decay = config.train.learning_rate, config.train.weight_decay
+    if config.train.trainable == "memory":
+        lstm, masked = freeze_all_but_memory(model)  # the masked weights' frozen entries need no weight decay
+        optimizer = torch.optim.Adam([{"params": lstm}, {"params": masked, "weight_decay": 0.0, "masked": True}],
+                                     lr=lr, weight_decay=decay)
+    else:
+        optimizer = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=decay)
     if init_optimizer:
         if init is None:
             raise ValueError("init_optimizer needs a checkpoint to start from (--init)")
@@ -139,7 +145,7 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, in
         except ValueError as e:  # parameter groups or sizes that do not match this model
             raise CheckpointError(f"checkpoint {init}: its optimizer state does not fit the model ({e})") from e
         for group in optimizer.param_groups:
-            group.update(lr=config.train.learning_rate, weight_decay=config.train.weight_decay)
+            group.update(lr=lr, weight_decay=0.0 if group.get("masked") else decay)
     return model, vocabulary, optimizer
 
 
