@@ -72,6 +72,13 @@ class GSFPV(nn.Module):
         self.heads = AuxiliaryHeads(m.feature_channels, m.relevance_channels, None, m.instruction_hidden,
                                     len(CATALOGUE), len(SIDES))
 
+    def memory_columns(self) -> slice:
+        """The perceptron's input columns that read the LSTM's outputs, after the maps and the sentence embedding
+        (the same in its hidden and output layers; GS-FPV-MEM only)."""
+        n_memory = self.config.model.fpv_memory
+        n_in = self.perceptron.hidden.in_features - n_memory
+        return slice(n_in, n_in + n_memory)
+
     def encode_instruction(self, tokens: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         return self.encoder(tokens, lengths)
 
@@ -126,16 +133,15 @@ def memory_from_fpv(fpv: GSFPV, seed: int = 0) -> GSFPV:
         torch.manual_seed(seed)
         mem = GSFPV(fpv.config, fpv.encoder.embedding.num_embeddings, memory=True)
     mem = mem.to(next(fpv.parameters()).device)
-    source, n_memory = fpv.state_dict(), fpv.config.model.fpv_memory
-    n_in = source["perceptron.hidden.weight"].shape[1]  # maps + sentence embedding
+    source, columns = fpv.state_dict(), mem.memory_columns()
     state = {}
     for name, tensor in mem.state_dict().items():
         if name.startswith("memory."):
             state[name] = tensor
         elif name in ("perceptron.hidden.weight", "perceptron.out.weight"):
             w = torch.zeros_like(tensor)
-            w[:, :n_in] = source[name][:, :n_in]
-            w[:, n_in + n_memory:] = source[name][:, n_in:]  # the output layer's hidden units; none for `hidden`
+            w[:, :columns.start] = source[name][:, :columns.start]
+            w[:, columns.stop:] = source[name][:, columns.start:]  # the output layer's hidden units; none for `hidden`
             state[name] = w
         else:
             state[name] = source[name]
@@ -156,8 +162,7 @@ def freeze_all_but_memory(model: GSFPV) -> tuple[list[nn.Parameter], list[nn.Par
     lstm = list(model.memory.parameters())
     for p in lstm:
         p.requires_grad_(True)
-    n_in = model.perceptron.hidden.in_features - model.config.model.fpv_memory  # maps + sentence embedding
-    columns = slice(n_in, n_in + model.config.model.fpv_memory)
+    columns = model.memory_columns()
     masked = [model.perceptron.hidden.weight, model.perceptron.out.weight]
     for weight in masked:
         mask = torch.zeros_like(weight)
