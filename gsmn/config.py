@@ -304,6 +304,8 @@ class DaggerConfig:
     max_deviation: float = _f(4.5, "a rollout is cut when the drone strays this far from the path (m)")
     workers: int = _f(2, "parallel rollout worker processes")
     split: str = _f("train", "environments rollouts are drawn from")
+    mirror_ensemble: bool = _f(False, "the learner flies its rollouts as a test-time mirror ensemble (not in the "
+                                      "paper: rollouts then visit the states of the policy that is deployed that way)")
 
     def __post_init__(self) -> None:
         _check(self.iterations >= 1, "dagger.iterations must be >= 1")

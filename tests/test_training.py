@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
@@ -225,6 +226,37 @@ def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervis
     parts = train_dagger(tmp_path / "parts", supervised_checkpoint, more_workers, train, log=lambda s: None)
     a, b = load_file(whole / "weights.safetensors"), load_file(parts / "weights.safetensors")
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_dagger_rollouts_can_be_flown_by_the_mirror_ensemble(supervised_checkpoint, tmp_path):
+    """With dagger.mirror_ensemble a rollout worker's learner is the test-time mirror ensemble of the current
+    policy: its rollout is the one that ensemble flies (the expert's labels), not the plain network's."""
+    from gsmn.model.checkpoint import load_policy
+    from gsmn.model.policy import MirrorEnsemble
+    from gsmn.task.rollout import task_for_env
+    from gsmn.training import dagger
+    from gsmn.training.collect import MixturePolicy, record_episode
+    from gsmn.world.env import Env
+
+    samples = {}
+    for flag in ("false", "true"):
+        config = with_overrides(DAGGER, {"dagger.mirror_ensemble": flag})
+        store = EpisodeStore(tmp_path / flag)
+        dagger._init_worker(config, str(store.root), str(supervised_checkpoint))
+        try:
+            dagger._rollout_one(("r", 2, 1, 0.0, 7))  # beta 0: the learner flies every step
+            assert isinstance(dagger._worker["learner"], MirrorEnsemble) == (flag == "true")
+        finally:
+            dagger._worker["env"].close()
+        samples[flag] = store.read("r")
+        assert store.read_meta("r")["expert_steps"] == 0
+    with Env(DAGGER) as env:
+        ensemble = MixturePolicy(DAGGER, learner=MirrorEnsemble(load_policy(supervised_checkpoint)), beta=0.0,
+                                 max_deviation=DAGGER.dagger.max_deviation)
+        expected = record_episode(env, ensemble, task_for_env(2, DAGGER), DAGGER.task.horizon)
+    assert np.array_equal(samples["true"].images, expected.images)
+    assert np.array_equal(samples["true"].actions, expected.actions)
+    assert not np.array_equal(samples["true"].images, samples["false"].images), "the ensemble flies otherwise"
 
 
 def test_state_killed_between_its_two_renames_is_recovered(tmp_path):

@@ -8,10 +8,12 @@
         pi_{i+1} <- one epoch on D (the optimizer's state carries over: the original rebuilt it, losing it)
 
 Rollouts fly in parallel worker processes that load the current policy from `run/policy/` (a checkpoint
-written before each collection); a rollout is cut when the drone strays 4.5 m from the path. The run is
-resumable after a kill at any point: each phase writes down what it will do (the keys to discard, the
-rollouts to fly) in the saved state before doing it, episodes are written atomically, and the epoch
-resumes batch by batch as in supervised training.
+written before each collection); a rollout is cut when the drone strays 4.5 m from the path. With
+`dagger.mirror_ensemble` the learner flies as a test-time mirror ensemble (`gsmn.model.policy.MirrorEnsemble`;
+not in the paper), so that the rollouts visit the states of the policy as it is deployed; one network is
+trained. The run is resumable after a kill at any point: each phase writes down what it will do (the keys to
+discard, the rollouts to fly) in the saved state before doing it, episodes are written atomically, and the
+epoch resumes batch by batch as in supervised training.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import torch
 
 from gsmn.config import RunConfig
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
+from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.rollout import task_for_env
 from gsmn.training.collect import MixturePolicy, record_episode
 from gsmn.training.run import RunFolder, TrainState
@@ -61,7 +64,9 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
     w = _worker
     config: RunConfig = w["config"]
     if w["iteration"] != iteration:  # the policy changes once per iteration
-        w["learner"], w["iteration"] = load_policy(w["policy_dir"]), iteration
+        learner = load_policy(w["policy_dir"])
+        w["learner"] = MirrorEnsemble(learner) if config.dagger.mirror_ensemble else learner
+        w["iteration"] = iteration
     policy = MixturePolicy(config, learner=w["learner"], beta=beta, rng=_rng(seed),
                            max_deviation=config.dagger.max_deviation)
     sample = record_episode(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
