@@ -238,22 +238,26 @@ def test_dagger_rollouts_can_be_flown_by_the_mirror_ensemble(supervised_checkpoi
     from gsmn.training.collect import MixturePolicy, record_episode
     from gsmn.world.env import Env
 
-    samples = {}
-    for flag in ("false", "true"):
-        config = with_overrides(DAGGER, {"dagger.mirror_ensemble": flag})
-        store = EpisodeStore(tmp_path / flag)
-        dagger._init_worker(config, str(store.root), str(supervised_checkpoint))
-        try:
-            dagger._rollout_one(("r", 2, 1, 0.0, 7))  # beta 0: the learner flies every step
-            assert isinstance(dagger._worker["learner"], MirrorEnsemble) == (flag == "true")
-        finally:
-            dagger._worker["env"].close()
-        samples[flag] = store.read("r")
-        assert store.read_meta("r")["expert_steps"] == 0
-    with Env(DAGGER) as env:
-        ensemble = MixturePolicy(DAGGER, learner=MirrorEnsemble(load_policy(supervised_checkpoint)), beta=0.0,
-                                 max_deviation=DAGGER.dagger.max_deviation)
-        expected = record_episode(env, ensemble, task_for_env(2, DAGGER), DAGGER.task.horizon)
+    samples, threads = {}, torch.get_num_threads()
+    try:
+        for flag in ("false", "true"):  # a worker's two functions, run in this process
+            config = with_overrides(DAGGER, {"dagger.mirror_ensemble": flag})
+            store = EpisodeStore(tmp_path / flag)
+            dagger._init_worker(config, str(store.root), str(supervised_checkpoint))  # sets one torch thread
+            try:
+                dagger._rollout_one(("r", 2, 1, 0.0, 7))  # beta 0: the learner flies every step
+                assert isinstance(dagger._worker["learner"], MirrorEnsemble) == (flag == "true")
+            finally:
+                dagger._worker["env"].close()
+                dagger._worker.clear()
+            samples[flag] = store.read("r")
+            assert store.read_meta("r")["expert_steps"] == 0
+        with Env(DAGGER) as env:  # the same ensemble flown here, on the worker's one thread
+            ensemble = MixturePolicy(DAGGER, learner=MirrorEnsemble(load_policy(supervised_checkpoint)), beta=0.0,
+                                     max_deviation=DAGGER.dagger.max_deviation)
+            expected = record_episode(env, ensemble, task_for_env(2, DAGGER), DAGGER.task.horizon)
+    finally:
+        torch.set_num_threads(threads)
     assert np.array_equal(samples["true"].images, expected.images)
     assert np.array_equal(samples["true"].actions, expected.actions)
     assert not np.array_equal(samples["true"].images, samples["false"].images), "the ensemble flies otherwise"
