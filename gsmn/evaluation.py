@@ -274,7 +274,8 @@ class ProgressLog:
     def write(self, record: EpisodeRecord) -> None:
         self.done += 1
         d = record.to_dict()
-        line = {k: v for k, v in d.items() if k not in ("trajectory", "actions", "stop_probabilities")}
+        line = {k: v for k, v in d.items() if k not in ("trajectory", "actions", "stop_probabilities",
+                                                         "member_stop_probabilities")}
         line["final_yaw"] = record.trajectory[-1][3]  # for failure attribution (which way a control failure missed)
         line["region_steps"] = region = record_region_steps(d, self.success_radius)  # flew through it: STOP
         line["region_stop_p"] = region_stop_probability(d, region)

@@ -7,7 +7,10 @@ many never stopped; with a sign test on "entered the region" between evaluations
 Reads the trajectories of `gsmn eval --json` files (no recordings needed). A system that enters the region often
 but succeeds rarely fails on its STOP, not on its navigation (docs/training.md, the baselines' order). Where the
 file keeps the policy's P(stop) per step (evaluations since 2026-11-27), the last column is the median and
-quartiles, over the failures that flew through the region, of the highest P(stop) there.
+quartiles, over the failures that flew through the region, of the highest P(stop) there. Where it keeps a test-time
+ensemble's members' own P(stop) per step (evaluations since 2026-11-28), a line under the table counts the STOPs
+the averaging took away: failures that flew through the region with a step there at which one copy alone would
+have said STOP (its P(stop) above 0.5) but the mean was not.
 """
 
 from __future__ import annotations
@@ -22,12 +25,31 @@ import numpy as np
 from gsmn.task.metrics import record_region_steps, region_stop_probability, sign_test
 
 
+def members_line(missed: list[dict], regions: dict[int, list[int]]) -> str:
+    """Of the failures that flew through the region, how many had a step there at which a member's P(stop) was
+    above 0.5 while the ensemble's mean was not, in all and per member (member order: `Ensemble.members`)."""
+    per_member: list[int] = []
+    any_member = 0
+    for e in missed:
+        steps = [i for i in regions[e["env_id"]] if i < len(e["member_stop_probabilities"])]
+        members = np.asarray([e["member_stop_probabilities"][i] for i in steps], np.float64)  # (steps, members)
+        lost = (members > 0.5) & (members.mean(axis=1, keepdims=True) <= 0.5)
+        per_member += [0] * (members.shape[1] - len(per_member))
+        for j in np.flatnonzero(lost.any(axis=0)):
+            per_member[j] += 1
+        any_member += bool(lost.any())
+    return (f"of {len(missed)} failures that flew through the region, {any_member} had a step there at which a "
+            f"member alone would have said STOP but the mean did not (per member: "
+            f"{', '.join(map(str, per_member))})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("evaluations", nargs="+", help="NAME=PATH of `gsmn eval --json` files")
     parser.add_argument("--radius", type=float, default=6.0, help="the success radius (m)")
     args = parser.parse_args()
     reached: dict[str, dict[int, bool]] = {}
+    averaged_away: list[str] = []
     print("| system | episodes | success | entered the region | of those: success | stopped elsewhere later | "
           "never stopped | highest P(stop) there, flown through |")
     print("|---|---|---|---|---|---|---|---|")
@@ -52,6 +74,10 @@ def main() -> None:
             spread = f"{q[0]:.2f} ({q[1]:.2f}-{q[2]:.2f})"
         print(f"| {name} | {len(episodes)} | {ok} | {n_in} | {ok} ({100 * ok / max(n_in, 1):.0f} %) | {later} | "
               f"{len(missed) - later} | {spread} |")
+        if missed and all(e.get("member_stop_probabilities") is not None for e in missed):
+            averaged_away.append(f"{name}: " + members_line(missed, regions))
+    for line in averaged_away:
+        print(line)
     for (na, a), (nb, b) in combinations(reached.items(), 2):
         if a.keys() != b.keys():
             print(f"{na} vs {nb}: not the same environments")

@@ -67,7 +67,9 @@ def flown_at(episode: dict, stop_probability: np.ndarray, tau: float, radius: fl
             "landmark_success": at_landmark, "goal_distance": goal_distance((x, y), (episode["goal_x"],
                                                                                       episode["goal_y"])),
             "trajectory": episode["trajectory"][:t + 1], "actions": actions,
-            "stop_probabilities": [float(q) for q in stop_probability[:t + 1]]}
+            "stop_probabilities": [float(q) for q in stop_probability[:t + 1]],
+            **({"member_stop_probabilities": episode["member_stop_probabilities"][:t + 1]}
+               if episode.get("member_stop_probabilities") is not None else {})}
 
 
 def main() -> int:

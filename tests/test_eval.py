@@ -287,6 +287,12 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     (tmp_path / "ens.json").write_text(json.dumps(results_dict("gsmn", str(folder), ensemble, config, 1.0, 1,
                                                                mirror_ensemble=True)))
     assert len(ensemble[0].stop_probabilities) == len(ensemble[0].actions)
+    members = ensemble[0].member_stop_probabilities  # and the two copies' own, step by step
+    assert len(members) == len(ensemble[0].actions) and all(len(m) == 2 for m in members)
+    assert np.allclose(np.mean(members, axis=1), ensemble[0].stop_probabilities)
+    assert records[0].member_stop_probabilities is None  # a single network has no members
+    back = EpisodeRecord.from_dict(json.loads(json.dumps(ensemble[0].to_dict())))
+    assert back.member_stop_probabilities == ensemble[0].member_stop_probabilities
     scored = subprocess.run([sys.executable, str(script), str(tmp_path / "ens.json")], capture_output=True, text=True)
     assert scored.returncode == 0 and f"({int(ensemble[0].success)})" in scored.stdout.splitlines()[3], scored.stderr
     older = json.loads(results.read_text())  # a file written before P(stop) was kept
@@ -300,3 +306,30 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     refused = subprocess.run([sys.executable, str(script), str(tmp_path / "mirrored.json"), str(tmp_path / "rec")],
                              capture_output=True, text=True)
     assert refused.returncode == 2 and "one network's P(stop)" in refused.stderr
+
+
+def test_region_counts_counts_the_stops_an_ensembles_mean_took_away(tmp_path):
+    """scripts/region_counts.py on a file that keeps an ensemble's members' P(stop): a failure that flew through the
+    success region is counted when one member alone was above 0.5 there and the mean was not, and only then."""
+    from gsmn.task.metrics import side_of
+
+    landmark, start, inside, outside = (10.0, 10.0), (10.0, 0.0), (12.0, 9.0), (25.0, 25.0)
+    side = side_of(landmark, start, inside)
+
+    def episode(env_id: int, members: list[tuple[float, float]]) -> dict:
+        path = [(*start, 5.0, 0.0), (*inside, 5.0, 0.0), (*outside, 5.0, 0.0)]
+        return {"env_id": env_id, "landmark_x": landmark[0], "landmark_y": landmark[1], "start_x": start[0],
+                "start_y": start[1], "side": side, "success": False, "stopped": False, "trajectory": path,
+                "actions": [(1.0, 0.0, False)] * 3, "stop_probabilities": [sum(m) / 2 for m in members],
+                "member_stop_probabilities": members}
+
+    taken = episode(1, [(0.0, 0.0), (0.1, 0.8), (0.9, 0.9)])  # in the region: the mirrored copy alone said STOP
+    kept = episode(2, [(0.0, 0.0), (0.45, 0.45), (0.9, 0.0)])  # nobody above 0.5 in the region (only outside)
+    path = tmp_path / "ens.json"
+    path.write_text(json.dumps({"episodes": [taken, kept]}))
+    script = Path(__file__).resolve().parents[1] / "scripts" / "region_counts.py"
+    run = subprocess.run([sys.executable, str(script), f"ens={path}"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "| ens | 2 | 0 | 2 |" in run.stdout
+    assert ("ens: of 2 failures that flew through the region, 1 had a step there at which a member alone would have "
+            "said STOP but the mean did not (per member: 0, 1)") in run.stdout

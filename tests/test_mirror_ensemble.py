@@ -96,6 +96,9 @@ def test_ensemble_averages_the_model_and_its_mirror_and_is_mirror_symmetric(flig
         p, q = plain.act(obs), plain_mirror.act(m)
         assert a.forward_velocity == pytest.approx((p.forward_velocity + q.forward_velocity) / 2, abs=1e-4)
         assert a.yaw_rate == pytest.approx((p.yaw_rate - q.yaw_rate) / 2, abs=1e-4)
+        # each copy's own P(stop) is kept, the plain copy's first; STOP is decided on their mean
+        assert a.member_stop_probabilities == pytest.approx((p.stop_probability, q.stop_probability), abs=1e-4)
+        assert a.stop_probability == pytest.approx(sum(a.member_stop_probabilities) / 2)
         differs = max(differs, abs(a.yaw_rate - p.yaw_rate), abs(a.forward_velocity - p.forward_velocity))
     assert differs > 1e-3  # the mirrored copy changes something: the ensemble is not the plain model
     assert ensemble.last_outputs is ensemble.policy.last_outputs  # the dashboard sees the unmirrored maps

@@ -135,15 +135,17 @@ class Ensemble:
         if self.field_size is None:
             raise RuntimeError("call reset(task) before act")
         mirrored = mirror_observation(obs, self.field_size) if self.mirror else None
-        v = omega = p_stop = 0.0
+        v = omega = 0.0
+        p_stops = []
         for policy, m in self.members:
             a = policy.act(mirrored if m else obs)
             v += a.forward_velocity
             omega += -a.yaw_rate if m else a.yaw_rate
-            p_stop += a.stop_probability
+            p_stops.append(a.stop_probability)
         n = len(self.members)
-        return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop / n > 0.5,
-                            stop_probability=p_stop / n)
+        p_stop = sum(p_stops) / n
+        return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop > 0.5, stop_probability=p_stop,
+                            member_stop_probabilities=tuple(p_stops))
 
     def counterfactual(self, text: str) -> GroundingOutputs:
         return self.policy.counterfactual(text)

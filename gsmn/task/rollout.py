@@ -57,6 +57,9 @@ class PolicyAction:
     yaw_rate: float  # rad/s, positive turns left
     stop: bool
     stop_probability: float | None = None  # a learned policy's P(stop), on which `stop` was decided
+    # a test-time ensemble's members' own P(stop), in its member order (`gsmn.model.policy.Ensemble`), whose mean
+    # is `stop_probability`; None for a single model
+    member_stop_probabilities: tuple[float, ...] | None = None
 
 
 class Policy(Protocol):
@@ -97,6 +100,9 @@ class EpisodeRecord:
     # the P(stop) each step was decided on (learned policies; None for the expert, the heuristic baselines, files
     # written before 2026-11-27)
     stop_probabilities: tuple[float, ...] | None = None
+    # an ensemble's members' P(stop) at every step (`PolicyAction.member_stop_probabilities`); None otherwise and in
+    # files written before 2026-11-28
+    member_stop_probabilities: tuple[tuple[float, ...], ...] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -108,6 +114,8 @@ class EpisodeRecord:
         d["actions"] = tuple(tuple(a) for a in d["actions"])
         if d.get("stop_probabilities") is not None:
             d["stop_probabilities"] = tuple(d["stop_probabilities"])
+        if d.get("member_stop_probabilities") is not None:
+            d["member_stop_probabilities"] = tuple(tuple(p) for p in d["member_stop_probabilities"])
         return cls(**d)
 
 
@@ -120,13 +128,14 @@ def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep 
     world, instruction = task.world, task.instruction
     obs = env.reset(world.env_id, instruction.text, world)
     policy.reset(task)
-    trajectory, actions, stop_probabilities, stopped = [], [], [], False
+    trajectory, actions, stop_probabilities, members, stopped = [], [], [], [], False
     while True:
         action = policy.act(obs)
         p = obs.pose.position
         trajectory.append((float(p[0]), float(p[1]), float(p[2]), float(obs.pose.yaw)))
         actions.append((float(action.forward_velocity), float(action.yaw_rate), bool(action.stop)))
         stop_probabilities.append(action.stop_probability)
+        members.append(action.member_stop_probabilities)
         if on_step is not None:
             on_step(obs, action)
         if action.stop:
@@ -146,4 +155,5 @@ def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep 
         success=success(final, landmark.position, world.start_position, instruction.side, success_radius),
         landmark_success=landmark_success(final, landmark.position, success_radius),
         goal_distance=goal_distance(final, instruction.goal), trajectory=tuple(trajectory), actions=tuple(actions),
-        stop_probabilities=None if None in stop_probabilities else tuple(map(float, stop_probabilities)))
+        stop_probabilities=None if None in stop_probabilities else tuple(map(float, stop_probabilities)),
+        member_stop_probabilities=None if None in members else tuple(tuple(map(float, m)) for m in members))
