@@ -28,19 +28,15 @@ from gsmn.task.metrics import record_region_steps, region_stop_probability, sign
 def members_line(missed: list[dict], regions: dict[int, list[int]]) -> str:
     """Of the failures that flew through the region, how many had a step there at which a member's P(stop) was
     above 0.5 while the ensemble's mean was not, in all and per member (member order: `Ensemble.members`)."""
-    per_member: list[int] = []
-    any_member = 0
+    rows = []  # per failure, per member: took away a STOP at some step in the region
     for e in missed:
-        steps = [i for i in regions[e["env_id"]] if i < len(e["member_stop_probabilities"])]
-        members = np.asarray([e["member_stop_probabilities"][i] for i in steps], np.float64)  # (steps, members)
-        lost = (members > 0.5) & (members.mean(axis=1, keepdims=True) <= 0.5)
-        per_member += [0] * (members.shape[1] - len(per_member))
-        for j in np.flatnonzero(lost.any(axis=0)):
-            per_member[j] += 1
-        any_member += bool(lost.any())
-    return (f"of {len(missed)} failures that flew through the region, {any_member} had a step there at which a "
-            f"member alone would have said STOP but the mean did not (per member: "
-            f"{', '.join(map(str, per_member))})")
+        members = np.asarray(e["member_stop_probabilities"], np.float64)  # (steps, members)
+        there = members[[i for i in regions[e["env_id"]] if i < len(members)]]
+        rows.append(((there > 0.5) & (there.mean(axis=1, keepdims=True) <= 0.5)).any(axis=0))
+    lost = np.asarray(rows)
+    return (f"of {len(missed)} failures that flew through the region, {int(lost.any(axis=1).sum())} had a step "
+            f"there at which a member alone would have said STOP but the mean did not (per member: "
+            f"{', '.join(map(str, lost.sum(axis=0)))})")
 
 
 def main() -> None:
