@@ -19,7 +19,7 @@ from gsmn.config import preset, with_overrides
 from gsmn.model.checkpoint import CheckpointError, load_checkpoint
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunError, RunFolder, TrainState
-from gsmn.training.store import EpisodeStore
+from gsmn.training.store import EpisodeStore, StoreError
 from gsmn.training.supervised import make_model_and_optimizer, train_supervised
 
 # Short episodes (the first 20 steps of the expert's flight, conftest.py's `stores`) keep these tests to seconds.
@@ -151,6 +151,36 @@ def test_a_killed_run_resumes_to_the_same_state_as_an_uninterrupted_one(stores, 
     log_a = (whole / "log.jsonl").read_text().splitlines()
     log_b = (killed / "log.jsonl").read_text().splitlines()
     assert [json.loads(x)["train"]["loss"] for x in log_a] == [json.loads(x)["train"]["loss"] for x in log_b]
+
+
+def test_reading_ahead_on_threads_trains_the_same_weights_and_resumes_with_it_changed(stores, tmp_path):
+    """train.prefetch reads (and mirrors) the next batches on threads while one trains: the same episodes in the same
+    order, so the same weights to the bit; a run stopped mid-epoch may resume with another setting."""
+    train, _ = stores
+    mirrored = with_overrides(CONFIG, {"train.mirror": "0.5", "train.epochs": "2"})
+    in_turn = train_supervised(tmp_path / "in_turn", "gsmn", mirrored, train, log=lambda s: None)
+    ahead = with_overrides(mirrored, {"train.prefetch": "3"})
+    stops = iter([True])  # stop at the first saved state inside an epoch, then run to the end
+    train_supervised(tmp_path / "ahead", "gsmn", ahead, train, log=lambda s: None,
+                     stop_after=lambda state: state.batch > 0 and next(stops, False))
+    assert RunFolder(tmp_path / "ahead").read_progress()["phase"] == "train"
+    resumed = train_supervised(tmp_path / "ahead", "gsmn", with_overrides(ahead, {"train.prefetch": "1"}), train,
+                               log=lambda s: None)
+    a, b = load_file(in_turn / "weights.safetensors"), load_file(resumed / "weights.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    losses = [[r["train"]["loss"] for r in RunFolder(tmp_path / name).read_log()] for name in ("in_turn", "ahead")]
+    assert losses[0] == losses[1] and len(losses[0]) == 2
+
+
+def test_an_episode_that_cannot_be_read_ahead_stops_training_by_its_name(stores, tmp_path):
+    train, _ = stores
+    broken = EpisodeStore(tmp_path / "broken")
+    for key in train.keys():
+        broken.path(key).write_bytes(train.path(key).read_bytes())
+    broken.path(train.keys()[-1]).write_bytes(b"not an npz")
+    config = with_overrides(CONFIG, {"train.prefetch": "2"})
+    with pytest.raises(StoreError, match=train.keys()[-1]):
+        train_supervised(tmp_path / "run", "gsmn", config, broken, log=lambda s: None)
 
 
 def test_a_memory_only_run_trains_the_memory_and_leaves_every_other_weight_as_it_was(stores, tmp_path):

@@ -50,9 +50,11 @@ class TrainState:
 
 
 EXTENDABLE = (("train", "epochs"), ("dagger", "iterations"))
-# may change when a run resumes: what the next batches see, and where they are computed, not what was saved
+# may change when a run resumes: what the next batches see, where and how they are computed and how often the state
+# is saved, not what was saved
 # (rollouts are seeded per rollout, not per worker, so the number of workers changes no flight)
-ADJUSTABLE = (("train", "mirror"), ("train", "device"), ("train", "threads"), ("dagger", "workers"))
+ADJUSTABLE = (("train", "mirror"), ("train", "device"), ("train", "threads"), ("train", "prefetch"),
+              ("train", "save_every_seconds"), ("dagger", "workers"))
 
 
 def _normalised(saved: dict) -> dict:

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +43,38 @@ def epoch_batches(keys: list[str], batch_size: int, seed: int, epoch: int) -> li
     """The episodes of each batch of an epoch, shuffled by (seed, epoch)."""
     order = np.random.default_rng(np.random.SeedSequence([seed, epoch])).permutation(len(keys))
     return [[keys[i] for i in order[k:k + batch_size]] for k in range(0, len(keys), batch_size)]
+
+
+def load_batch(store: EpisodeStore, keys: list[str], mirror: float, seed: int) -> list:
+    """One batch's episodes, mirrored as `seed` says."""
+    return maybe_mirror([store.read(key) for key in keys], mirror, seed)
+
+
+def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirror: float, seed: int, epoch: int,
+                 prefetch: int = 0) -> Iterator[list]:
+    """The episodes of batches[start:], each batch mirrored as its seed says, in order. With `prefetch` > 0 that
+    many threads read up to 2 * prefetch batches ahead of the one being trained on, so reading overlaps training;
+    the batches are the same either way. The threads share the GIL with the training loop: decompressing and
+    flipping arrays release it, the rest does not (worker processes, tried, cost more than they saved here:
+    docs/design.md, "Reading ahead")."""
+    def args(i: int) -> tuple:
+        return store, batches[i], mirror, batch_seed(seed, epoch, i)
+
+    if prefetch <= 0:
+        for i in range(start, len(batches)):
+            yield load_batch(*args(i))
+        return
+    pool = ThreadPoolExecutor(prefetch, thread_name_prefix="gsmn-read")
+    pending: deque[Future] = deque()
+    try:
+        following = start
+        while following < len(batches) or pending:
+            while following < len(batches) and len(pending) < 2 * prefetch:
+                pending.append(pool.submit(load_batch, *args(following)))
+                following += 1
+            yield pending.popleft().result()
+    finally:  # also when the caller stops early: no reads left running
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vocabulary: Vocabulary,
@@ -159,28 +194,29 @@ def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vo
     loss is written to the run's progress.json (throttled) and passed to `on_progress`."""
     tc = config.train
     batches = epoch_batches(keys, tc.batch_size, tc.seed, epoch)
-    last_save = time.monotonic()
     progress = {"phase": "train", **(progress or {"epoch": epoch + 1})}
-    while state.batch < len(batches):
-        t0 = time.monotonic()
-        seed = batch_seed(tc.seed, epoch, state.batch)
-        samples = maybe_mirror([store.read(key) for key in batches[state.batch]], tc.mirror, seed)
-        values = train_step(model, optimizer, samples, vocabulary, config, seed)
-        values["seconds"] = time.monotonic() - t0
-        _accumulate(state.sums, state.counts, values)
-        state.batch += 1
-        state.step += 1
-        state.seconds += values["seconds"]
-        now = {**progress, "batch": state.batch, "batches": len(batches), "step": state.step,
-               "loss": values.get("loss"), "frames": values.get("frames")}
-        run.write_progress(now, force=state.batch == len(batches))
-        if on_progress:
-            on_progress(now)
-        if time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches):
-            run.save_state(model, optimizer, state)
-            last_save = time.monotonic()
-            if stop_after and stop_after(state):
-                return False
+    last_save = time.monotonic()
+    with closing(read_batches(store, batches, state.batch, tc.mirror, tc.seed, epoch, tc.prefetch)) as reader:
+        t0 = time.monotonic()  # a batch's seconds count the wait for its episodes, as without prefetching
+        for samples in reader:
+            seed = batch_seed(tc.seed, epoch, state.batch)
+            values = train_step(model, optimizer, samples, vocabulary, config, seed)
+            values["seconds"] = time.monotonic() - t0
+            _accumulate(state.sums, state.counts, values)
+            state.batch += 1
+            state.step += 1
+            state.seconds += values["seconds"]
+            now = {**progress, "batch": state.batch, "batches": len(batches), "step": state.step,
+                   "loss": values.get("loss"), "frames": values.get("frames")}
+            run.write_progress(now, force=state.batch == len(batches))
+            if on_progress:
+                on_progress(now)
+            if time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches):
+                run.save_state(model, optimizer, state)
+                last_save = time.monotonic()
+                if stop_after and stop_after(state):
+                    return False
+            t0 = time.monotonic()
     return True
 
 
