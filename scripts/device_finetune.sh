@@ -37,6 +37,7 @@ WORKERS=${WORKERS:-16}
 CHECKS=${CHECKS:-1}
 COLLECT_N=${COLLECT_N:-}
 PY=${PY:-python3}
+PREFETCH=${PREFETCH:-4}  # threads reading the next episodes while one trains (0: in turn, as before 2026-11-28)
 W=${W:-/tmp/device_finetune}
 mkdir -p "$OUT" "$W"
 L=$OUT/call.log
@@ -77,7 +78,8 @@ else
     train=(train supervised --kind gsmn --train.epochs 40)
 fi
 timeout -s TERM -k 30 "$TRAIN_S" $PY -m gsmn.cli "${train[@]}" --data "$W/fresh" --dev "$W/dev" --run "$W/ft" \
-    --train.device "$DEVICE" --train.batch-size 1 --train.threads 4 --train.save-every-seconds 60 "$@" 2>&1 \
+    --train.device "$DEVICE" --train.batch-size 1 --train.threads 4 --train.save-every-seconds 60 \
+    --train.prefetch "$PREFETCH" "$@" 2>&1 \
     | tr '\r' '\n' | grep -v '%|' | tail -45 | tee -a "$L"
 sleep 3
 kill "$keep"
