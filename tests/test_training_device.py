@@ -36,20 +36,21 @@ def test_a_run_on_a_missing_gpu_is_refused_by_name_and_saves_nothing(stores, tmp
 
 
 def test_a_run_may_change_its_device_and_threads_when_it_resumes(tmp_path):
-    """The device and the thread count decide where and how fast the next batches are computed, not what was saved
+    """The device, the thread counts and the save interval decide where and how fast the next batches are computed, not what was saved
     (which is always on the CPU)."""
     run = RunFolder(tmp_path / "run")
     run.start(CONFIG)
     run.start(with_overrides(CONFIG, {"train.device": "cuda"}))
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["device"] == "cuda"
     run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.threads": "1"}))
+    run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.prefetch": "4", "train.save_every_seconds": "20"}))
     run.start(with_overrides(CONFIG, {"train.device": "cuda", "train.epochs": "3"}))
 
 
 @pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
 def test_a_run_trained_on_the_gpu_is_read_on_the_cpu_and_computes_the_same(stores, tmp_path):
     train, dev = stores
-    on_gpu = with_overrides(CONFIG, {"train.device": "cuda"})
+    on_gpu = with_overrides(CONFIG, {"train.device": "cuda", "train.prefetch": "2"})  # read ahead, as the scripts do
     checkpoint = train_supervised(tmp_path / "gpu", "gsmn", on_gpu, train, dev, log=lambda s: None)
     log = RunFolder(tmp_path / "gpu").read_log()
     assert [r["epoch"] for r in log] == [1, 2] and log[-1]["train"]["loss"] < log[0]["train"]["loss"]
