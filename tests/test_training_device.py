@@ -36,8 +36,8 @@ def test_a_run_on_a_missing_gpu_is_refused_by_name_and_saves_nothing(stores, tmp
 
 
 def test_a_run_may_change_its_device_and_threads_when_it_resumes(tmp_path):
-    """The device, the thread counts and the save interval decide where and how fast the next batches are computed, not what was saved
-    (which is always on the CPU)."""
+    """The device, the thread counts and the save interval decide where and how fast the next batches are computed,
+    not what was saved (which is always on the CPU)."""
     run = RunFolder(tmp_path / "run")
     run.start(CONFIG)
     run.start(with_overrides(CONFIG, {"train.device": "cuda"}))
