@@ -30,8 +30,8 @@ WORKERS=${WORKERS:-16}
 PY=${PY:-python3}
 RUNS=${RUNS:-runs}
 DATA=${DATA:-data}
-SUP_S=${SUP_S:-400}
-DAGGER_S=${DAGGER_S:-120}
+SUP_S=${SUP_S:-330}      # with the collection (about 45 s), set-up and packing, SUP_S + DAGGER_S <= 480 fits
+DAGGER_S=${DAGGER_S:-150}  # one 10-minute call
 EPOCHS=${EPOCHS:-16}
 TRAIN_EPISODES=${TRAIN_EPISODES:-600}
 SEED_EPISODES=${SEED_EPISODES:-96}
