@@ -44,15 +44,8 @@ KINDS=${KINDS:-gs-fpv-mem gs-fpv}
 W=${W:-/tmp/device_baselines}  # the runs' own logs (packed with them: the tool brings back at most 8 files)
 mkdir -p "$OUT" "$RUNS" "$DATA" "$W"
 L=$OUT/call.log
-if [ "$DEVICE" != cpu ]; then
-    source scripts/device_setup.sh || exit 1
-fi
-export MUJOCO_GL=egl PYTHONUNBUFFERED=1
-t0=$SECONDS
-stamp() { echo "== $(date -u +%H:%M:%S) +$((SECONDS - t0)) s: $*" | tee -a "$L"; }
-{ date -u; nvidia-smi -L 2>/dev/null; lscpu | grep 'Model name'; nproc; ls -d "$RUNS"/*_sup16 2>/dev/null
-  $PY -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__)"
-} 2>&1 | tee -a "$L"
+source scripts/device_log.sh || exit 1
+ls -d "$RUNS"/*_sup16 2>/dev/null | tee -a "$L"
 epochs_done() { [ -f "$RUNS/$1_sup16/log.jsonl" ] && wc -l < "$RUNS/$1_sup16/log.jsonl" || echo 0; }
 
 stamp "1. expert data ($WORKERS workers)"

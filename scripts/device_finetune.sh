@@ -41,15 +41,7 @@ PREFETCH=${PREFETCH:-4}  # threads reading the next episodes while one trains (0
 W=${W:-/tmp/device_finetune}
 mkdir -p "$OUT" "$W"
 L=$OUT/call.log
-if [ "$DEVICE" != cpu ]; then
-    source scripts/device_setup.sh || exit 1
-fi
-export MUJOCO_GL=egl PYTHONUNBUFFERED=1
-t0=$SECONDS
-stamp() { echo "== $(date -u +%H:%M:%S) +$((SECONDS - t0)) s: $*" | tee -a "$L"; }
-{ date -u; nvidia-smi -L; lscpu | grep 'Model name'; nproc
-  $PY -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__)"
-} 2>&1 | tee -a "$L"
+source scripts/device_log.sh || exit 1
 
 if [ "$CHECKS" != 0 ]; then
     stamp "1. the GPU test"

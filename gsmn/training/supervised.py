@@ -45,11 +45,6 @@ def epoch_batches(keys: list[str], batch_size: int, seed: int, epoch: int) -> li
     return [[keys[i] for i in order[k:k + batch_size]] for k in range(0, len(keys), batch_size)]
 
 
-def load_batch(store: EpisodeStore, keys: list[str], mirror: float, seed: int) -> list:
-    """One batch's episodes, mirrored as `seed` says."""
-    return maybe_mirror([store.read(key) for key in keys], mirror, seed)
-
-
 def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirror: float, seed: int, epoch: int,
                  prefetch: int = 0) -> Iterator[list]:
     """The episodes of batches[start:], each batch mirrored as its seed says, in order. With `prefetch` > 0 that
@@ -57,12 +52,12 @@ def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirr
     the batches are the same either way. The threads share the GIL with the training loop: decompressing and
     flipping arrays release it, the rest does not (worker processes, tried, cost more than they saved here:
     docs/design.md, "Reading ahead")."""
-    def args(i: int) -> tuple:
-        return store, batches[i], mirror, batch_seed(seed, epoch, i)
+    def load(i: int) -> list:
+        return maybe_mirror([store.read(key) for key in batches[i]], mirror, batch_seed(seed, epoch, i))
 
     if prefetch <= 0:
         for i in range(start, len(batches)):
-            yield load_batch(*args(i))
+            yield load(i)
         return
     pool = ThreadPoolExecutor(prefetch, thread_name_prefix="gsmn-read")
     pending: deque[Future] = deque()
@@ -70,7 +65,7 @@ def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirr
         following = start
         while following < len(batches) or pending:
             while following < len(batches) and len(pending) < 2 * prefetch:
-                pending.append(pool.submit(load_batch, *args(following)))
+                pending.append(pool.submit(load, following))
                 following += 1
             yield pending.popleft().result()
     finally:  # also when the caller stops early: no reads left running
