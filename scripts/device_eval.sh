@@ -26,10 +26,8 @@ set -uo pipefail
 OUT=${OUT:-/tmp/out}
 W=/tmp/device_eval
 mkdir -p "$OUT" "$W"
-source scripts/device_setup.sh || exit 1
-{ date -u; nvidia-smi -L; lscpu | grep 'Model name'; nproc
-  python3 -c "import torch, mujoco, trimesh; print('torch', torch.__version__, 'mujoco', mujoco.__version__, 'trimesh', trimesh.__version__)"
-} 2>&1 | tee -a "$W/machine.txt"
+DEVICE=${DEVICE:-cuda} PY=python3 L=$W/machine.txt
+source scripts/device_log.sh || exit 1  # the set-up and the machine's header, as the other device scripts
 cp "$W/machine.txt" "$OUT/"
 
 run_one() {

@@ -1,6 +1,7 @@
-# Sourced by scripts/device_eval.sh and scripts/device_log.sh (device_finetune.sh, device_baselines.sh) on a lent
-# GPU machine: MuJoCo, trimesh and their wheels from the carried `.whl`, libEGL from the carried `.gl`
-# (scripts/device_eval.sh says how both were made), once per machine; then the environment the project runs in there. Returns non-zero if the install fails.
+# Sourced by scripts/device_log.sh (device_eval.sh, device_finetune.sh, device_baselines.sh) on a lent GPU machine:
+# MuJoCo, trimesh and their wheels from the carried `.whl`, libEGL from the carried `.gl` (scripts/device_eval.sh
+# says how both were made), once per machine; then the environment the project runs in there. Returns non-zero if
+# the install fails.
 if [ ! -d /tmp/site/mujoco ]; then
     for f in .gl/*.deb; do dpkg -x "$f" /; done
     ldconfig
