@@ -133,11 +133,13 @@ class JobsView(RunnerListener):
                 self.run_progress = gui.add_progress_bar(0.0, visible=False)
                 self.run_status = gui.add_markdown("A run trains in its own process; one at a time.")
                 self.curves = gui.add_uplot(
-                    data=(np.zeros(1), np.full(1, np.nan), np.full(1, np.nan), np.full(1, np.nan)),
+                    data=curve_data([]),
                     series=({"label": "iteration"}, {"label": "loss", "stroke": "#2870f5", "width": 2},
                             {"label": "action loss", "stroke": "#e08020", "width": 2},
-                            {"label": "learner steps", "stroke": "#1e8449", "width": 2, "dash": [4, 3]}),
-                    title="Training loss per iteration, and the share of steps the learner flew", aspect=1.6,
+                            {"label": "learner steps", "stroke": "#1e8449", "width": 2, "dash": [4, 3]},
+                            {"label": "rollouts succeeded", "stroke": "#8e44ad", "width": 2}),
+                    title="Training loss per iteration; the shares of steps the learner flew and of the "
+                          "iteration's rollouts that succeeded", aspect=1.6,
                     scales={"x": {"time": False}}, axes=({"label": "iteration"}, {}))
             with gui.add_folder("Runs"):
                 self.runs_table = gui.add_html("")
@@ -619,13 +621,16 @@ def runs_html(runs: list[Run]) -> str:
 
 
 def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
+    """The run's curves per iteration: loss, action loss, the learner's share of the steps flown and the share
+    of the iteration's rollouts that succeeded (NaN where a record lacks a figure)."""
     if not metrics:
-        return np.zeros(1), np.full(1, np.nan), np.full(1, np.nan), np.full(1, np.nan)
+        return np.zeros(1), *(np.full(1, np.nan) for _ in range(4))
     it = np.array([m.get("iteration", k + 1) for k, m in enumerate(metrics)], np.float64)
     loss = np.array([m.get("train", {}).get("loss", np.nan) for m in metrics], np.float64)
     action = np.array([m.get("train", {}).get("loss_action", np.nan) for m in metrics], np.float64)
     learner = np.array([m.get("learner_step_fraction", np.nan) for m in metrics], np.float64)
-    return it, loss, action, learner
+    succeeded = np.array([m.get("rollout_success", np.nan) for m in metrics], np.float64)
+    return it, loss, action, learner, succeeded
 
 
 def compare_html(c: dict, after: Evaluation | None) -> str:

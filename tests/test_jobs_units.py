@@ -320,9 +320,12 @@ def test_the_pages_text():
                     cancel_requested=False)
     html = summary_html(ev, {"perception": 1, "goal": 2})
     assert "2/2" in html and "50 %" in html and 'data-stage="goal"' in html and "Failures by attribution (3)" in html
-    it, loss, action, learner = curve_data([{"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5},
-                                             "learner_step_fraction": 0.1}, {"iteration": 2, "train": {"loss": 1.0}}])
+    it, loss, action, learner, succeeded = curve_data([
+        {"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5}, "learner_step_fraction": 0.1},
+        {"iteration": 2, "train": {"loss": 1.0}, "learner_step_fraction": 0.3, "rollout_success": 0.25}])
     assert list(it) == [1, 2] and list(loss) == [2.0, 1.0] and math.isnan(action[1])
+    assert list(learner) == [0.1, 0.3] and math.isnan(succeeded[0]) and succeeded[1] == 0.25
+    assert len(curve_data([])) == 5
     brief = {"success": False, "goal_distance": 5.0, "stage": "goal", "landmark_success": False, "steps": 3,
              "stopped": True}
     c = {"before": 1, "after": 2, "episodes": [{"env_id": 7, "instruction": "i", "before": brief,

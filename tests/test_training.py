@@ -239,6 +239,12 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     new = [k for k in dataset.keys() if k.startswith("dagger_")]
     assert new and all(dataset.read_with_meta(k)[1]["learner_steps"] >= 0 for k in new)
     assert sum(dataset.read_with_meta(k)[1]["learner_steps"] for k in new) > 0
+    # Each record scores its iteration's rollouts (the last one's are all still in the dataset: M 3, N_D 2).
+    last = [dataset.read_meta(k) for k in new if dataset.read_meta(k)["iteration"] == 2]
+    assert len(last) == 2 and all(isinstance(m["success"], bool) and isinstance(m["cut"], bool) for m in last)
+    assert log[1]["rollout_success"] == sum(m["success"] for m in last) / 2
+    assert log[1]["rollout_cut"] == sum(m["cut"] for m in last) / 2
+    assert all(0 <= r["rollout_success"] <= 1 and 0 <= r["rollout_cut"] <= 1 for r in log)
     assert len(train) == 4, "discarding from the DAgger dataset never touches the expert store"
     model, *_ = load_checkpoint(checkpoint)
     assert model.kind == "gsmn"
@@ -291,6 +297,44 @@ def test_dagger_rollouts_can_be_flown_by_the_mirror_ensemble(supervised_checkpoi
     assert np.array_equal(samples["true"].images, expected.images)
     assert np.array_equal(samples["true"].actions, expected.actions)
     assert not np.array_equal(samples["true"].images, samples["false"].images), "the ensemble flies otherwise"
+
+
+def test_a_dagger_rollout_keeps_its_outcome_as_gsmn_eval_scores_it(supervised_checkpoint, tmp_path):
+    """A rollout's metadata holds the success `gsmn eval`'s rollout gives the same flight, and whether the
+    rollout was cut for straying from the path: the expert alone (beta 1) is the flight `rollout` scores here,
+    never cut; the learner's (beta 0) is scored and marked the same way."""
+    from gsmn.model.checkpoint import load_policy
+    from gsmn.task.baselines import ExpertPolicy
+    from gsmn.task.rollout import rollout, task_for_env
+    from gsmn.training import dagger
+    from gsmn.training.collect import MixturePolicy
+    from gsmn.world.env import Env
+
+    config = with_overrides(DAGGER, {"task.horizon": "150"})  # long enough for the expert to arrive
+    store, threads = EpisodeStore(tmp_path / "rollouts"), torch.get_num_threads()
+    try:
+        dagger._init_worker(config, str(store.root), str(supervised_checkpoint))
+        try:
+            for env_id in (2, 3):
+                dagger._rollout_one((f"expert_{env_id}", env_id, 1, 1.0, 7))   # beta 1: the expert every step
+                dagger._rollout_one((f"learner_{env_id}", env_id, 1, 0.0, 7))  # beta 0: the learner every step
+        finally:
+            dagger._worker["env"].close()
+            dagger._worker.clear()
+        torch.set_num_threads(1)  # as in the worker
+        expected = {}
+        with Env(config) as env:
+            for e in (2, 3):
+                task = task_for_env(e, config)
+                expected[f"expert_{e}"] = (rollout(env, ExpertPolicy(config), task, config.task.horizon).success, False)
+                learner = MixturePolicy(config, learner=load_policy(supervised_checkpoint), beta=0.0,
+                                        max_deviation=config.dagger.max_deviation)
+                expected[f"learner_{e}"] = (rollout(env, learner, task, config.task.horizon).success, learner.cut)
+    finally:
+        torch.set_num_threads(threads)
+    assert {k: (store.read_meta(k)["success"], store.read_meta(k)["cut"]) for k in expected} == expected
+    assert all(expected[f"expert_{e}"][0] for e in (2, 3)), "the expert succeeds (100 % on test)"
+    assert len({v for v in expected.values()}) > 1, "the outcomes differ, or a constant would pass"
 
 
 def test_state_killed_between_its_two_renames_is_recovered(tmp_path):

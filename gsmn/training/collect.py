@@ -18,7 +18,7 @@ import numpy as np
 from gsmn.config import RunConfig
 from gsmn.model.batch import EpisodeSample
 from gsmn.task.baselines import ExpertPolicy
-from gsmn.task.rollout import Policy, PolicyAction, Task, rollout, task_for_env
+from gsmn.task.rollout import EpisodeRecord, Policy, PolicyAction, Task, rollout, task_for_env
 from gsmn.training.store import EpisodeStore
 from gsmn.world.env import Env, Observation
 
@@ -41,12 +41,14 @@ class MixturePolicy:
         self.max_deviation = max_deviation
         self.label: np.ndarray | None = None  # (3,) v_norm, omega_norm, stop of the last step
         self.expert_steps = self.learner_steps = 0
+        self.cut = False  # the last rollout was cut for straying from the path
 
     def reset(self, task: Task) -> None:
         self.expert.reset(task)
         if self.learner is not None:
             self.learner.reset(task)
         self.expert_steps = self.learner_steps = 0
+        self.cut = False
 
     def act(self, obs: Observation) -> PolicyAction:
         drone = self.config.drone
@@ -63,12 +65,19 @@ class MixturePolicy:
             self.learner_steps += 1
         if self.max_deviation is not None and self.expert.expert.distance_to_path(obs.pose.position[:2]) > (
                 self.max_deviation):
+            self.cut = True
             return PolicyAction(0.0, 0.0, stop=True)  # cut the rollout here; the label stays the expert's
         return action
 
 
 def record_episode(env: Env, policy: MixturePolicy, task: Task, horizon: int) -> EpisodeSample:
     """Fly one episode with `policy` and return it with the expert's label at every observation."""
+    return fly_and_record(env, policy, task, horizon)[0]
+
+
+def fly_and_record(env: Env, policy: MixturePolicy, task: Task, horizon: int
+                   ) -> tuple[EpisodeSample, EpisodeRecord]:
+    """`record_episode`, and the flight's outcome as `gsmn eval` scores it (success, stop, distances)."""
     images, T_world_camera, poses, labels = [], [], [], []
 
     def on_step(obs: Observation, action: PolicyAction) -> None:
@@ -77,10 +86,11 @@ def record_episode(env: Env, policy: MixturePolicy, task: Task, horizon: int) ->
         poses.append((obs.pose.position[0], obs.pose.position[1], obs.pose.yaw))
         labels.append(policy.label)
 
-    rollout(env, policy, task, horizon, on_step=on_step)
-    return EpisodeSample(world=task.world, instruction=task.instruction, images=np.stack(images),
-                         T_world_camera=np.stack(T_world_camera).astype(np.float32), K=env.sim.K.astype(np.float32),
-                         poses=np.array(poses, np.float32), actions=np.stack(labels))
+    record = rollout(env, policy, task, horizon, on_step=on_step)
+    sample = EpisodeSample(world=task.world, instruction=task.instruction, images=np.stack(images),
+                           T_world_camera=np.stack(T_world_camera).astype(np.float32), K=env.sim.K.astype(np.float32),
+                           poses=np.array(poses, np.float32), actions=np.stack(labels))
+    return sample, record
 
 
 def episode_key(env_id: int) -> str:

@@ -14,6 +14,11 @@ not in the paper), so that the rollouts visit the states of the policy as it is 
 trained. The run is resumable after a kill at any point: each phase writes down what it will do (the keys to
 discard, the rollouts to fly) in the saved state before doing it, episodes are written atomically, and the
 epoch resumes batch by batch as in supervised training.
+
+Each iteration's log record has, beside the dev figures on expert states, the closed loop of its own rollouts:
+`rollout_success`, the share of them that ended in success as `gsmn eval` scores it, and `rollout_cut`, the
+share cut for straying from the path. Once beta is near 0 these are the current policy's flights in fresh
+environments, seen for free (N_D of them: noisy from one iteration to the next, a trend over several).
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from gsmn.config import RunConfig
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.rollout import task_for_env
-from gsmn.training.collect import MixturePolicy, record_episode
+from gsmn.training.collect import MixturePolicy, fly_and_record
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import Logger, Progress, finish_epoch, run_epoch, start_or_resume
@@ -69,9 +74,10 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
         w["iteration"] = iteration
     policy = MixturePolicy(config, learner=w["learner"], beta=beta, rng=_rng(seed),
                            max_deviation=config.dagger.max_deviation)
-    sample = record_episode(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
+    sample, record = fly_and_record(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
     w["store"].write(key, sample, meta={"env_id": env_id, "iteration": iteration, "beta": beta,
-                                        "expert_steps": policy.expert_steps, "learner_steps": policy.learner_steps})
+                                        "expert_steps": policy.expert_steps, "learner_steps": policy.learner_steps,
+                                        "success": record.success, "cut": policy.cut})
     return key, policy.expert_steps, policy.learner_steps
 
 
@@ -147,6 +153,9 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 mix = state.extra["mix"]
                 record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
                           "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
+                if mix.get("scored") and mix["scored"] == mix["rollouts"]:  # rollouts before 2026-11-29 kept none
+                    record.update(rollout_success=mix["success"] / mix["scored"],
+                                  rollout_cut=mix["cut"] / mix["scored"])
                 state.extra = {"phase": "discard"}
                 finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log)
                 if stop_after and stop_after(state):
@@ -172,12 +181,17 @@ def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> Pr
 
 
 def _mixture_counts(dataset: EpisodeStore, jobs: list) -> dict[str, int]:
-    expert = learner = 0
+    """The iteration's expert and learner steps, and of its rollouts how many succeeded and how many were cut."""
+    counts = dict.fromkeys(("expert", "learner", "scored", "success", "cut"), 0) | {"rollouts": len(jobs)}
     for key, *_ in jobs:
         meta = dataset.read_meta(key)
-        expert += meta["expert_steps"]
-        learner += meta["learner_steps"]
-    return {"expert": expert, "learner": learner}
+        counts["expert"] += meta["expert_steps"]
+        counts["learner"] += meta["learner_steps"]
+        if "success" in meta:
+            counts["scored"] += 1
+            counts["success"] += bool(meta["success"])
+            counts["cut"] += bool(meta["cut"])
+    return counts
 
 
 def _link(src: Path, dst: Path) -> None:
