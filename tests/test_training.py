@@ -248,6 +248,25 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     assert len(train) == 4, "discarding from the DAgger dataset never touches the expert store"
     model, *_ = load_checkpoint(checkpoint)
     assert model.kind == "gsmn"
+    # scripts/dagger_rows.py, the docs' table of such runs, reads this run as the log and the dataset say.
+    script = Path(__file__).resolve().parents[1] / "scripts" / "dagger_rows.py"
+    out = subprocess.run([sys.executable, str(script), str(tmp_path / "dagger"), "--dataset"], capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    rows = [line.split(" | ") for line in out if line.startswith("| 1 |") or line.startswith("| 2 |")]
+    assert [r[1] for r in rows] == ["0.5", "0.25"]
+    assert [r[-1].rstrip(" |") for r in rows] == [
+        f"{round(r['rollout_success'] * 2)} / {round(r['rollout_cut'] * 2)}" for r in log]
+    assert [r[2] for r in rows] == [f"{r['dev']['loss_action']:.3f}" for r in log]
+    stops = sum(bool((dataset.read(k).actions[:, 2] > 0.5).any()) for k in dataset.keys())
+    assert out[-1].endswith(f"3 episodes, {3 - len(new)} from the expert store, {len(new)} rollouts; "
+                            f"{stops} hold a STOP label")
+    # These 20-step rollouts neither arrive nor stray 4.5 m; shares read as counts of the run's N_D (2) rollouts:
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text((tmp_path / "dagger" / "config.json").read_text())
+    (other / "log.jsonl").write_text(json.dumps({**log[1], "rollout_success": 0.5, "rollout_cut": 1.0}) + "\n")
+    out = subprocess.run([sys.executable, str(script), str(other)], capture_output=True, text=True, check=True).stdout
+    assert out.splitlines()[-1].endswith(" | 1 / 2 |")
 
 
 def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervised_checkpoint, tmp_path):
