@@ -5,9 +5,11 @@ DAggerFM's beta-0 mixture flies them (the learner acts at every step, the expert
     MUJOCO_GL=egl python scripts/cut_rate.py checkpoints/gsmn checkpoints/gs-fpv --episodes 24 --json out.json
 
 The environments are the first N of the train environments the baselines' DAggerFM draws from (train ids from 600
-on, `runs/stage28.sh`). A flight the cut ends early ends with a STOP the learner did not choose and no expert STOP
-label, so a policy whose rollouts are mostly cut trains on little of what happens near its goal
-(docs/training.md, "What the baselines' DAggerFM data holds").
+on, `runs/stage28.sh`). A flight the cut ends early ends with a STOP the learner did not choose, on a frame whose
+label is the expert's (fly back to the path), so a policy whose rollouts are mostly cut trains on little of what
+happens when it stops near its goal. `stop_labels` counts the frames where the expert said STOP (within its
+radius of the goal): a flight can have them and still fail, having flown on past the goal (docs/training.md,
+"What the baselines' DAggerFM data holds").
 """
 
 from __future__ import annotations
