@@ -5,8 +5,9 @@ run's dataset holds now.
     python scripts/dagger_rows.py runs/gs-fpv-mem_dagger_s28 runs/gs-fpv_dagger_s28 --dataset
 
 Reads RUN/log.jsonl (one record per iteration) and, with --dataset, the episodes in RUN/dataset: how many came from
-the expert store and how many from rollouts, and how many hold a STOP label at all (a rollout cut for straying
-from the path ends without one).
+the expert store and how many are rollouts; of the rollouts (by their metadata) how many succeeded, were cut for
+straying from the path, or neither (or were flown before rollouts kept their outcome), and in each group how many
+carry an expert STOP label at all (a failed one that does flew on past the place where the expert said STOP).
 """
 
 from __future__ import annotations
@@ -15,16 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
-
-def rows(run: Path) -> dict[int, dict]:
-    out = {}
-    for line in (run / "log.jsonl").read_text().splitlines():
-        if line.strip():
-            record = json.loads(line)
-            out[int(record["iteration"])] = record
-    return out
+from gsmn.training.run import RunFolder
+from gsmn.training.store import EpisodeStore
 
 
 def cells(record: dict | None, n: int) -> list[str]:
@@ -40,14 +33,25 @@ def cells(record: dict | None, n: int) -> list[str]:
 
 
 def dataset_summary(run: Path) -> str:
-    files = sorted((run / "dataset").glob("*.npz"))
-    from_rollouts = [f for f in files if f.name.startswith("dagger_")]
-    with_stop = 0
-    for f in files:
-        with np.load(f, allow_pickle=False) as z:
-            with_stop += bool((z["actions"][:, 2] > 0.5).any())
-    return (f"{run}: {len(files)} episodes, {len(files) - len(from_rollouts)} from the expert store, "
-            f"{len(from_rollouts)} rollouts; {with_stop} hold a STOP label")
+    """What RUN/dataset holds: expert episodes, and the rollouts by outcome (with a STOP label in brackets)."""
+    store = EpisodeStore(run / "dataset")
+    expert = 0
+    groups = {"succeeded": [0, 0], "failed and cut": [0, 0], "failed, not cut": [0, 0], "not scored": [0, 0]}
+    for key in store.keys():
+        meta = store.read_meta(key)
+        if "iteration" not in meta:  # an episode of the expert store
+            expert += 1
+            continue
+        if "success" not in meta:  # flown before rollouts kept their outcome (2026-11-29)
+            group = "not scored"
+        else:
+            group = "succeeded" if meta["success"] else "failed and cut" if meta["cut"] else "failed, not cut"
+        groups[group][0] += 1
+        groups[group][1] += bool((store.read_labels(key)[:, 2] > 0.5).any())
+    rollouts = sum(n for n, _ in groups.values())
+    return (f"{run}: {expert + rollouts} episodes, {expert} from the expert store, {rollouts} rollouts: "
+            + ", ".join(f"{name} {n} ({stop} with a STOP label)" for name, (n, stop) in groups.items()
+                        if n or name != "not scored"))
 
 
 def main() -> None:
@@ -56,7 +60,7 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=1, help="first iteration to print")
     parser.add_argument("--dataset", action="store_true", help="also summarise each run's dataset")
     args = parser.parse_args()
-    logs = [rows(r) for r in args.runs]
+    logs = [{int(r["iteration"]): r for r in RunFolder(run).read_log()} for run in args.runs]
     n_d = [json.loads((r / "config.json").read_text())["dagger"]["rollouts_per_iteration"] for r in args.runs]
     head = ["iteration", "beta"]
     for r in args.runs:

@@ -257,9 +257,14 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     assert [r[-1].rstrip(" |") for r in rows] == [
         f"{round(r['rollout_success'] * 2)} / {round(r['rollout_cut'] * 2)}" for r in log]
     assert [r[2] for r in rows] == [f"{r['dev']['loss_action']:.3f}" for r in log]
-    stops = sum(bool((dataset.read(k).actions[:, 2] > 0.5).any()) for k in dataset.keys())
-    assert out[-1].endswith(f"3 episodes, {3 - len(new)} from the expert store, {len(new)} rollouts; "
-                            f"{stops} hold a STOP label")
+    groups = {"succeeded": [0, 0], "failed and cut": [0, 0], "failed, not cut": [0, 0]}
+    for k in new:
+        meta, actions = dataset.read_meta(k), dataset.read(k).actions
+        group = groups["succeeded" if meta["success"] else "failed and cut" if meta["cut"] else "failed, not cut"]
+        group[0] += 1
+        group[1] += bool((actions[:, 2] > 0.5).any())
+    assert out[-1].endswith(f"3 episodes, {3 - len(new)} from the expert store, {len(new)} rollouts: " + ", ".join(
+        f"{name} {n} ({stop} with a STOP label)" for name, (n, stop) in groups.items()))
     # These 20-step rollouts neither arrive nor stray 4.5 m; shares read as counts of the run's N_D (2) rollouts:
     other = tmp_path / "other"
     other.mkdir()

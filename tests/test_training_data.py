@@ -37,6 +37,7 @@ def test_store_round_trip_is_exact_and_atomic(tmp_path):
     store.write("a", sample, meta={"env_id": 71})
     back, meta = store.read_with_meta("a")
     assert meta == {"env_id": 71} and store.read_meta("a") == meta
+    assert np.array_equal(store.read_labels("a"), sample.actions)
     assert back.world == sample.world and back.instruction == sample.instruction
     for name in ("images", "T_world_camera", "K", "poses", "actions"):
         assert np.array_equal(getattr(back, name), getattr(sample, name)), name

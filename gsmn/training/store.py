@@ -77,6 +77,10 @@ class EpisodeStore:
         """An episode's metadata alone, without decompressing its images."""
         return json.loads(self._load(key, ("json",))["json"].tobytes().decode())["meta"]
 
+    def read_labels(self, key: str) -> np.ndarray:
+        """An episode's expert labels (T, 3: v, omega, stop) alone, without decompressing its images."""
+        return self._load(key, ("actions",))["actions"]
+
     def _load(self, key: str, names: tuple[str, ...]) -> dict[str, np.ndarray]:
         """The named arrays of an episode file (an .npz decompresses only the entries asked for)."""
         path = self.path(key)
