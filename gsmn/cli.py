@@ -138,37 +138,69 @@ class _TrainingBars:
 def cmd_eval(args: argparse.Namespace) -> int:
     import time
 
-    from gsmn.evaluation import TABLE_HEADER, ProgressLog, env_ids_for, evaluate, results_dict, table_row, write_json
+    from gsmn.evaluation import (
+        TABLE_HEADER,
+        PartialResults,
+        ProgressLog,
+        checkpoint_fingerprint,
+        env_ids_for,
+        evaluate,
+        results_dict,
+        table_row,
+        write_json,
+    )
     from gsmn.task.metrics import summarize
 
     config = config_from_args(args)
     env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
+    if args.resume and not args.json:
+        raise ValueError("--resume continues the evaluation that writes --json F (from F.partial.jsonl): give --json")
+    partial, done = (PartialResults(args.json), []) if args.json else (None, [])
+    if partial is not None:
+        header = {"system": args.system, "checkpoint": checkpoint_fingerprint(args.system, args.checkpoint),
+                  "mirror_ensemble": args.mirror_ensemble,
+                  "ensemble_with": [checkpoint_fingerprint(args.system, c) for c in args.ensemble_with],
+                  "config": config.to_dict()}
+        done = partial.open(header, env_ids, args.resume)
+        if done:
+            print(f"resuming: {len(done)} of {len(env_ids)} episodes kept in {partial.path}", file=sys.stderr)
     if args.threads is not None:
         import torch
 
         torch.set_num_threads(args.threads)
     progress = (ProgressLog(Path(args.progress), len(env_ids), config.task.success_radius) if args.progress
                 else None)
+    for record in done:
+        if progress is not None:
+            progress.write(record)
+    done_ids = {r.env_id for r in done}
     t0 = time.perf_counter()
     with _progress(len(env_ids), args.system) as bar:
+        bar.update(len(done))
+
         def on_episode(record) -> None:
             bar.update(1)
+            if partial is not None:
+                partial.append(record)
             if progress is not None:
                 progress.write(record)
 
-        records = evaluate(args.system, env_ids, config, args.checkpoint, args.workers, on_episode=on_episode,
-                           record_dir=args.record, mirror_ensemble=args.mirror_ensemble,
-                           ensemble_with=args.ensemble_with)
+        flown = evaluate(args.system, [e for e in env_ids if e not in done_ids], config, args.checkpoint,
+                         args.workers, on_episode=on_episode, record_dir=args.record,
+                         mirror_ensemble=args.mirror_ensemble, ensemble_with=args.ensemble_with)
     seconds = time.perf_counter() - t0
+    by_id = {r.env_id: r for r in done + flown}
+    records = [by_id[e] for e in env_ids]
     summary = summarize(records, config.task.success_radius)
     print(TABLE_HEADER)
     print(table_row(args.system, summary))
     pruned = summary.pruned.count if summary.pruned else 0
-    print(f"{len(records)} episodes ({pruned} unambiguous) in {seconds:.0f} s with {args.workers} worker(s): "
-          f"{60 * len(records) / seconds:.1f} episodes/min")
+    print(f"{len(records)} episodes ({pruned} unambiguous); {len(flown)} flown in {seconds:.0f} s with "
+          f"{args.workers} worker(s): {60 * len(flown) / max(seconds, 1e-9):.1f} episodes/min")
     if args.json:
         write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers,
                                                  args.mirror_ensemble, args.ensemble_with))
+        partial.remove()
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 
@@ -331,6 +363,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", default=None, help="folder for each episode's final maps and per-step readings "
                    "(GSMN only), for failure attribution")
     p.add_argument("--progress", default=None, help="append one JSON line per finished episode to this file")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an evaluation that was stopped before writing --json F: the episodes it finished "
+                        "are kept in F.partial.jsonl, and only the rest are flown (the same system, checkpoint and "
+                        "settings only)")
     p.add_argument("--mirror-ensemble", action="store_true",
                    help="fly a learned model as a test-time mirror ensemble: it also flies the mirror image of each "
                         "step and the two actions are averaged (twice the compute; not in the paper)")

@@ -208,6 +208,76 @@ def _checkpoint_bytes(path: str | None) -> dict[str, bytes] | None:
     return {name: (folder / name).read_bytes() for name in FILES if name != "meta.json" and (folder / name).is_file()}
 
 
+def checkpoint_fingerprint(system: str, checkpoint: str | None) -> str | None:
+    """A SHA-256 over what decides how `system` flies from `checkpoint` (the default one where None): a learned
+    system's weights, config and vocabulary, avg-forward's JSON; None for systems without one."""
+    import hashlib
+
+    if system in LEARNED_SYSTEMS:
+        folder = Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system
+        files = _checkpoint_bytes(str(folder)) or {}
+    elif system == "avg-forward":
+        path = Path(checkpoint) if checkpoint else AVG_FORWARD_PATH
+        files = {path.name: path.read_bytes()} if path.is_file() else {}
+    else:
+        return None
+    digest = hashlib.sha256()
+    for name in sorted(files):
+        digest.update(name.encode() + b"\0" + hashlib.sha256(files[name]).digest())
+    return digest.hexdigest()
+
+
+class PartialResults:
+    """The finished episodes of an evaluation that writes `--json F`, kept in `F.partial.jsonl` as they finish
+    (one line of settings, then one full record a line, flushed at once), so that a run stopped before its end
+    (Ctrl-C, SIGTERM, a machine going away) loses at most the episodes in flight: `gsmn eval ... --resume` with the
+    same settings flies only the rest. The file is removed once F is written.
+
+    `open(resume=False)` refuses to overwrite a partial file (saved work) and says how to go on; with `resume=True`
+    it returns the records kept there for `env_ids` after checking that they were flown with the same system,
+    checkpoint (by a hash of its bytes), settings and ensemble. A last line cut short by a kill is dropped."""
+
+    def __init__(self, json_path: str | Path):
+        self.path = Path(str(json_path) + ".partial.jsonl")
+
+    def open(self, header: dict, env_ids: Sequence[int], resume: bool) -> list[EpisodeRecord]:
+        wanted = set(env_ids)
+        kept: list[EpisodeRecord] = []
+        if self.path.exists():
+            lines = self.path.read_text().splitlines()
+            if not resume:
+                raise ValueError(f"{self.path} holds {max(len(lines) - 1, 0)} finished episode(s) of an earlier run "
+                                 "that stopped before its end: pass --resume to fly only the rest, or remove the "
+                                 "file to start again")
+            try:
+                old = json.loads(lines[0]) if lines else None
+            except json.JSONDecodeError:
+                old = None
+            if old != header:
+                differs = sorted(k for k in header if old is None or old.get(k) != header[k])
+                raise ValueError(f"{self.path} was written by an evaluation with other settings ({', '.join(differs)}"
+                                 "): it cannot be resumed with these; remove it to start again")
+            for line in lines[1:]:
+                try:
+                    record = EpisodeRecord.from_dict(json.loads(line))
+                except (json.JSONDecodeError, TypeError, KeyError):
+                    continue  # the line being written when the run was stopped
+                if record.env_id in wanted:
+                    kept.append(record)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.write_text("".join(json.dumps(x) + "\n" for x in [header] + [r.to_dict() for r in kept]))
+        tmp.replace(self.path)
+        return kept
+
+    def append(self, record: EpisodeRecord) -> None:
+        with self.path.open("a") as f:
+            f.write(json.dumps(record.to_dict()) + "\n")
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 def merge_results(parts: Sequence[dict]) -> dict:
     """One evaluation from several `results_dict`s of the same system, checkpoint and settings on disjoint
     environments (an evaluation run in pieces), with the summary recomputed over all episodes.

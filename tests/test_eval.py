@@ -196,6 +196,56 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     assert mixed.returncode == 2 and "different environments" in mixed.stderr
 
 
+def test_cli_eval_stopped_by_sigterm_resumes_where_it_stopped(tmp_path):
+    """`gsmn eval --json F` keeps each finished episode in F.partial.jsonl; after SIGTERM mid-run, a second run
+    refuses to overwrite it, `--resume` flies only the rest and writes the same F as an uninterrupted run, and other
+    settings are refused."""
+    import signal
+    import time
+
+    base = [sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "0:80", "--preset", "tiny",
+            "--task.horizon", "20"]
+    whole = tmp_path / "whole.json"
+    subprocess.run([*base, "--json", str(whole)], check=True, capture_output=True)
+    assert not (tmp_path / "whole.json.partial.jsonl").exists()  # removed once the JSON is written
+    out, progress = tmp_path / "out.json", tmp_path / "progress.jsonl"
+    partial = tmp_path / "out.json.partial.jsonl"
+    proc = subprocess.Popen([*base, "--json", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not partial.exists() or len(partial.read_text().splitlines()) < 3:  # the settings and 2 episodes
+            assert proc.poll() is None and time.monotonic() < deadline, "eval ended or stalled before 2 episodes"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not out.exists()
+    kept = len(partial.read_text().splitlines()) - 1
+    assert 2 <= kept < 80
+    again = subprocess.run([*base, "--json", str(out)], capture_output=True, text=True)
+    assert again.returncode == 2 and "pass --resume" in again.stderr
+    assert len(partial.read_text().splitlines()) - 1 == kept  # saved work untouched
+    other = subprocess.run([*base, "--json", str(out), "--resume", "--task.success-radius", "5"],
+                           capture_output=True, text=True)
+    assert other.returncode == 2 and "other settings (config)" in other.stderr
+    other = subprocess.run([*base[:5], "random-point", *base[6:], "--json", str(out), "--resume"],
+                           capture_output=True, text=True)
+    assert other.returncode == 2 and "other settings (system)" in other.stderr
+    resumed = subprocess.run([*base, "--json", str(out), "--resume", "--progress", str(progress)],
+                             capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resuming: {kept} of 80 episodes" in resumed.stderr and f"{80 - kept} flown in" in resumed.stdout
+    a, b = json.loads(whole.read_text()), json.loads(out.read_text())
+    assert b["env_ids"] == a["env_ids"] == list(range(80))
+    assert b["episodes"] == a["episodes"] and b["summary"] == a["summary"]
+    assert [json.loads(x)["done"] for x in progress.read_text().splitlines()] == list(range(1, 81))
+    assert not partial.exists()
+    with pytest.raises(subprocess.CalledProcessError):  # --resume needs the file it resumes into
+        subprocess.run([*base, "--resume"], check=True, capture_output=True)
+
+
 def test_learned_systems_load_from_checkpoints(tmp_path):
     from gsmn.model.checkpoint import CheckpointError, save_checkpoint
     from gsmn.model.models import build_model
