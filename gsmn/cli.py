@@ -157,11 +157,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise ValueError("--resume continues the evaluation that writes --json F (from F.partial.jsonl): give --json")
     partial, done = (PartialResults(args.json), []) if args.json else (None, [])
     if partial is not None:
-        header = {"system": args.system, "checkpoint": checkpoint_fingerprint(args.system, args.checkpoint),
+        header = {"system": args.system, "env_ids": list(env_ids),
+                  "checkpoint": checkpoint_fingerprint(args.system, args.checkpoint),
                   "mirror_ensemble": args.mirror_ensemble,
                   "ensemble_with": [checkpoint_fingerprint(args.system, c) for c in args.ensemble_with],
                   "config": config.to_dict()}
-        done = partial.open(header, env_ids, args.resume)
+        done = partial.open(header, args.resume)
         if done:
             print(f"resuming: {len(done)} of {len(env_ids)} episodes kept in {partial.path}", file=sys.stderr)
     if args.threads is not None:

@@ -234,14 +234,14 @@ class PartialResults:
     same settings flies only the rest. The file is removed once F is written.
 
     `open(resume=False)` refuses to overwrite a partial file (saved work) and says how to go on; with `resume=True`
-    it returns the records kept there for `env_ids` after checking that they were flown with the same system,
-    checkpoint (by a hash of its bytes), settings and ensemble. A last line cut short by a kill is dropped."""
+    it returns the records kept there after checking that the header (what `gsmn eval` puts there: the system, the
+    environments, the checkpoint by a hash of its bytes, the settings, the ensemble) is the same. A last line cut
+    short by a kill is dropped. The JSON's `seconds` are then the resumed run's only."""
 
     def __init__(self, json_path: str | Path):
         self.path = Path(str(json_path) + ".partial.jsonl")
 
-    def open(self, header: dict, env_ids: Sequence[int], resume: bool) -> list[EpisodeRecord]:
-        wanted = set(env_ids)
+    def open(self, header: dict, resume: bool) -> list[EpisodeRecord]:
         kept: list[EpisodeRecord] = []
         if self.path.exists():
             lines = self.path.read_text().splitlines()
@@ -259,11 +259,9 @@ class PartialResults:
                                  "): it cannot be resumed with these; remove it to start again")
             for line in lines[1:]:
                 try:
-                    record = EpisodeRecord.from_dict(json.loads(line))
+                    kept.append(EpisodeRecord.from_dict(json.loads(line)))
                 except (json.JSONDecodeError, TypeError, KeyError):
                     continue  # the line being written when the run was stopped
-                if record.env_id in wanted:
-                    kept.append(record)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name(self.path.name + ".tmp")
         tmp.write_text("".join(json.dumps(x) + "\n" for x in [header] + [r.to_dict() for r in kept]))

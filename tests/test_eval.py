@@ -233,6 +233,9 @@ def test_cli_eval_stopped_by_sigterm_resumes_where_it_stopped(tmp_path):
     other = subprocess.run([*base[:5], "random-point", *base[6:], "--json", str(out), "--resume"],
                            capture_output=True, text=True)
     assert other.returncode == 2 and "other settings (system)" in other.stderr
+    other = subprocess.run([*base[:6], "--env-ids", "0:90", *base[8:], "--json", str(out), "--resume"],
+                           capture_output=True, text=True)
+    assert other.returncode == 2 and "other settings (env_ids)" in other.stderr
     resumed = subprocess.run([*base, "--json", str(out), "--resume", "--progress", str(progress)],
                              capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr
