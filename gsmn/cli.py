@@ -366,8 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", default=None, help="append one JSON line per finished episode to this file")
     p.add_argument("--resume", action="store_true",
                    help="continue an evaluation that was stopped before writing --json F: the episodes it finished "
-                        "are kept in F.partial.jsonl, and only the rest are flown (the same system, checkpoint and "
-                        "settings only)")
+                        "are kept in F.partial.jsonl, and only the rest are flown (the same system, environments, "
+                        "checkpoint and settings only)")
     p.add_argument("--mirror-ensemble", action="store_true",
                    help="fly a learned model as a test-time mirror ensemble: it also flies the mirror image of each "
                         "step and the two actions are averaged (twice the compute; not in the paper)")
