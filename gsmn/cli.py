@@ -155,8 +155,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
     if args.resume and not args.json:
         raise ValueError("--resume continues the evaluation that writes --json F (from F.partial.jsonl): give --json")
-    partial, done = (PartialResults(args.json), []) if args.json else (None, [])
-    if partial is not None:
+    partial, done = None, []
+    if args.json:
+        partial = PartialResults(args.json)
         header = {"system": args.system, "env_ids": list(env_ids),
                   "checkpoint": checkpoint_fingerprint(args.system, args.checkpoint),
                   "mirror_ensemble": args.mirror_ensemble,
@@ -171,8 +172,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     progress = (ProgressLog(Path(args.progress), len(env_ids), config.task.success_radius) if args.progress
                 else None)
-    for record in done:
-        if progress is not None:
+    if progress is not None:
+        for record in done:
             progress.write(record)
     done_ids = {r.env_id for r in done}
     t0 = time.perf_counter()

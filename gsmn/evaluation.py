@@ -39,6 +39,16 @@ LEARNED_SYSTEMS = ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem")
 SYSTEMS = LEARNED_SYSTEMS + TRIVIAL_SYSTEMS
 
 
+def checkpoint_path(system: str, checkpoint: str | Path | None = None) -> Path | None:
+    """Where `system` loads from: `checkpoint`, else its default (checkpoints/SYSTEM for a learned system,
+    checkpoints/avg_forward.json for avg-forward); None for systems without one."""
+    if checkpoint:
+        return Path(checkpoint)
+    if system in LEARNED_SYSTEMS:
+        return REPO_ROOT / "checkpoints" / system
+    return AVG_FORWARD_PATH if system == "avg-forward" else None
+
+
 def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None,
                 mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = ()) -> Policy:
     """The policy of a system. Learned systems only: `ensemble_with` names more checkpoints of the same system
@@ -54,11 +64,11 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
     if system == "random-landmark":
         return RandomLandmarkPolicy(config)
     if system == "avg-forward":
-        return AvgForwardPolicy(AverageAction.load(Path(checkpoint) if checkpoint else AVG_FORWARD_PATH))
+        return AvgForwardPolicy(AverageAction.load(checkpoint_path(system, checkpoint)))
     if system in LEARNED_SYSTEMS:
         from gsmn.model.checkpoint import load_policy
 
-        folders = [Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system]
+        folders = [checkpoint_path(system, checkpoint)]
         folders += [Path(c) for c in ensemble_with]
         policies = [load_policy(folder) for folder in folders]
         for folder, policy in zip(folders, policies, strict=True):
@@ -213,14 +223,13 @@ def checkpoint_fingerprint(system: str, checkpoint: str | None) -> str | None:
     system's weights, config and vocabulary, avg-forward's JSON; None for systems without one."""
     import hashlib
 
-    if system in LEARNED_SYSTEMS:
-        folder = Path(checkpoint) if checkpoint else REPO_ROOT / "checkpoints" / system
-        files = _checkpoint_bytes(str(folder)) or {}
-    elif system == "avg-forward":
-        path = Path(checkpoint) if checkpoint else AVG_FORWARD_PATH
-        files = {path.name: path.read_bytes()} if path.is_file() else {}
-    else:
+    path = checkpoint_path(system, checkpoint)
+    if path is None:
         return None
+    if system in LEARNED_SYSTEMS:
+        files = _checkpoint_bytes(str(path)) or {}
+    else:  # avg-forward's JSON
+        files = {path.name: path.read_bytes()} if path.is_file() else {}
     digest = hashlib.sha256()
     for name in sorted(files):
         digest.update(name.encode() + b"\0" + hashlib.sha256(files[name]).digest())
@@ -242,6 +251,7 @@ class PartialResults:
         self.path = Path(str(json_path) + ".partial.jsonl")
 
     def open(self, header: dict, resume: bool) -> list[EpisodeRecord]:
+        header = json.loads(json.dumps(header))  # as it reads back from the file (tuples become lists)
         kept: list[EpisodeRecord] = []
         if self.path.exists():
             lines = self.path.read_text().splitlines()
