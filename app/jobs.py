@@ -47,6 +47,7 @@ from gsmn.task.metrics import record_region_steps, region_stop_probability
 log = logging.getLogger("gsmn.dashboard")
 
 KILL_AFTER = 5.0  # s between SIGTERM and SIGKILL when cancelling
+NICE = ["nice", "-n", "10"]  # jobs run below the live view's priority
 MAX_ENVIRONMENTS = 5000
 
 
@@ -310,6 +311,32 @@ class JobManager:
     def cancel_evaluation(self, evaluation_id: int) -> Evaluation:
         return self._cancel("evaluation", evaluation_id)
 
+    def resume_evaluation(self, evaluation_id: int) -> Evaluation:
+        """Fly the rest of a cancelled or failed evaluation, as the same evaluation in its own folder: its command
+        again with `--resume`, so `gsmn eval` keeps the episodes it had finished (`results.json.partial.jsonl`) and
+        flies only the others. `gsmn eval` itself refuses (and the evaluation fails, saying what differs) if the
+        checkpoint's weights have changed since."""
+        row = self.evaluation(evaluation_id)
+        if row.status not in (CANCELLED, FAILED):
+            raise Conflict(f"evaluation {evaluation_id} is {row.status}: only a cancelled or failed one resumes")
+        if not row.command or not row.folder:
+            raise Conflict(f"evaluation {evaluation_id} was not flown by this dashboard: it has nothing to resume")
+        folder = Path(row.folder)
+        if not folder.is_dir():
+            raise Conflict(f"evaluation {evaluation_id}'s folder {folder} is gone: evaluate again instead")
+        command = list(row.command)
+        if command[:len(NICE)] == NICE:
+            command = command[len(NICE):]  # _launch adds it again
+        if "--resume" not in command:
+            command.append("--resume")
+        with self._lock:
+            self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
+            # the resumed process writes the progress file anew, the kept episodes first: read it from the start
+            (folder / "progress.jsonl").write_text("")
+            self.db.update_evaluation(evaluation_id, status=QUEUED, cancel_requested=False, error=None, finished=None)
+            self._launch("evaluation", evaluation_id, folder, command)
+        return self.db.evaluation(evaluation_id)
+
     def evaluation(self, evaluation_id: int) -> Evaluation:
         e = self.db.evaluation(evaluation_id)
         if e is None:
@@ -444,7 +471,7 @@ class JobManager:
     def _launch(self, kind: str, job_id: int, folder: Path, command: list[str]) -> None:
         update = self.db.update_run if kind == "run" else self.db.update_evaluation
         if shutil.which("nice"):
-            command = ["nice", "-n", "10", *command]
+            command = [*NICE, *command]
         out = (folder / "output.log").open("ab")
         try:
             proc = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

@@ -1,6 +1,6 @@
 """HTTP routes for evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
 (`app.jobs`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
-unknown ids, 409 when a limit is reached or there is nothing to cancel, 422 for bad input."""
+unknown ids, 409 when a limit is reached or there is nothing to cancel or resume, 422 for bad input."""
 
 from __future__ import annotations
 
@@ -207,6 +207,11 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
                 summary="Cancel a running evaluation (its process group gets SIGTERM, then SIGKILL)")
     def cancel_evaluation(evaluation_id: int) -> EvaluationModel:
         return evaluation_model(jobs, jobs.cancel_evaluation(evaluation_id))
+
+    @app.post("/api/evaluations/{evaluation_id}/resume", response_model=EvaluationModel,
+              summary="Fly the rest of a cancelled or failed evaluation, keeping the episodes it had finished")
+    def resume_evaluation(evaluation_id: int) -> EvaluationModel:
+        return evaluation_model(jobs, jobs.resume_evaluation(evaluation_id))
 
     @app.get("/api/evaluations/{evaluation_id}/episodes", response_model=list[EpisodeModel],
              summary="Its episodes in the order flown, with attribution; filters as in the failure browser")

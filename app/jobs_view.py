@@ -22,7 +22,7 @@ import viser
 import viser.uplot
 
 from app.commands import RunnerError, RunnerListener, StartEpisode
-from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
+from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, EpisodeRow, Evaluation, Run
 from app.jobs import RUN_PRESETS, JobManager, run_settings
 from app.jobs_api import replay_policy
 from app.panels import error_html, region_text
@@ -89,7 +89,7 @@ class JobsView(RunnerListener):
                                                     hint="the model also flies the mirror image of each step and the "
                                                          "two actions are averaged (twice the compute; not in the "
                                                          "paper); replays fly the same way")
-                self.eval_buttons = gui.add_button_group("Evaluation", ("Evaluate", "Cancel"))
+                self.eval_buttons = gui.add_button_group("Evaluation", ("Evaluate", "Cancel", "Resume"))
                 self.eval_progress = gui.add_progress_bar(0.0, visible=False)
                 self.eval_status = gui.add_markdown("Evaluations run in their own process; their episodes and "
                                                     "failures appear below as they finish.")
@@ -197,7 +197,8 @@ class JobsView(RunnerListener):
     def _apply(self, event: tuple) -> None:
         kind = event[0]
         if kind == "eval":
-            self._evaluate() if event[1] == "Evaluate" else self._cancel_evaluation()
+            {"Evaluate": self._evaluate, "Cancel": self._cancel_evaluation,
+             "Resume": self._resume_evaluation}[event[1]]()
         elif kind == "import":
             self._import(event[1])
         elif kind == "browse":
@@ -254,6 +255,18 @@ class JobsView(RunnerListener):
             self.jobs.cancel_evaluation(active[-1].id)
         except RunnerError as err:
             self.eval_status.content = error_html(html.escape(str(err)))
+
+    def _resume_evaluation(self) -> None:
+        """Fly the rest of the evaluation shown in the failure browser, if it was cancelled or failed."""
+        if self.evaluation_id is None:
+            self.eval_status.content = "No evaluation to resume yet."
+            return
+        try:
+            self.jobs.resume_evaluation(self.evaluation_id)
+        except RunnerError as err:
+            self.eval_status.content = error_html(f"**Not resumed:** {html.escape(str(err))}")
+            return
+        self._refresh()  # its progress line: the kept episodes count as done
 
     def _import(self, path: str) -> None:
         if not path:
@@ -441,7 +454,7 @@ class JobsView(RunnerListener):
             e = evaluations[-1]
             self.eval_progress.visible = False
             self.eval_status.content = f"Evaluation {e.id} {e.status}." + (
-                f" {html.escape(error_summary(e.error))}" if e.status == "failed" else "")
+                f" {html.escape(error_summary(e.error))}" if e.status == "failed" else "") + resume_hint(e)
 
     def _refresh_runs(self, runs: list[Run]) -> None:
         self.runs_table.content = runs_html(runs)
@@ -551,7 +564,17 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
             f"<div><b>{e.done}/{e.total}</b> episodes · success <b>{_pct(s.get('success'))}</b> · landmark "
             f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
             f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
-            f"{''.join(bars)}{region_summary(regions)}</div>")
+            f"{''.join(bars)}{region_summary(regions)}"
+            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{resume_hint(e).strip()}</div>'
+               if resume_hint(e) else "") + "</div>")
+
+
+def resume_hint(e: Evaluation) -> str:
+    """For a cancelled or failed evaluation the dashboard flew: that Resume flies the rest (else "")."""
+    if e.status not in (CANCELLED, FAILED) or e.source == "import" or e.done >= e.total:
+        return ""
+    return (f" Stopped at {e.done} of {e.total} episodes: Resume (with it picked in the failure browser) keeps "
+            f"those and flies the other {e.total - e.done}.")
 
 
 def region_summary(regions: dict[str, int] | None) -> str:

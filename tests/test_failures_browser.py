@@ -13,6 +13,7 @@ import os
 import re
 import shutil
 import time
+from pathlib import Path
 
 import playwright.sync_api as playwright_api
 import pytest
@@ -175,3 +176,29 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
             what="the mirror-ensemble evaluation to finish in the page")
     e = dashboard.jobs.db.evaluation(mirrored)
     assert e.mirror_ensemble and e.env_ids == [70] and "--mirror-ensemble" in e.command
+
+    # cancelled part way, then resumed from the page: the episodes it had finished are kept, the rest fly
+    field(page, "As mirror ensemble").uncheck(force=True)
+    ids = field(page, "Or env ids")
+    ids.fill("70:85")
+    ids.press("Enter")
+    page.get_by_role("button", name="Evaluate", exact=True).click()
+    page.get_by_text(re.compile(r"15 chosen environments")).first.wait_for()
+    long = max(e.id for e in dashboard.jobs.db.evaluations())
+    wait_js(page, EVALUATION, lambda v: v and v["id"] == str(long) and re.search(r"\b([2-9]|1[0-4])/15\b", v["text"]),
+            timeout=180, what="two episodes of fifteen in the page")
+    page.get_by_role("button", name="Cancel", exact=True).click()
+    stopped = wait_js(page, EVALUATION, lambda v: v and v["id"] == str(long) and v["status"] == "cancelled",
+                      timeout=60, what="the cancelled evaluation in the page")
+    kept = dashboard.jobs.db.episodes(long)
+    assert f"Stopped at {len(kept)} of 15 episodes" in stopped["text"] and 2 <= len(kept) < 15
+    page.get_by_role("button", name="Resume", exact=True).click()
+    page.get_by_text(re.compile(rf"Evaluation {long} \(15 chosen environments\): \d+ of 15")).first.wait_for()
+    done = wait_js(page, EVALUATION, lambda v: v and v["id"] == str(long) and v["status"] == "finished",
+                   timeout=300, what="the resumed evaluation to finish in the page")
+    assert "15/15 episodes" in done["text"] and "Stopped at" not in done["text"]
+    after = {r.env_id: r for r in dashboard.jobs.db.episodes(long)}
+    assert sorted(after) == list(range(70, 85)) and all(after[r.env_id] == r for r in kept)
+    log = (Path(dashboard.jobs.db.evaluation(long).folder) / "output.log").read_text()
+    m = re.search(r"resuming: (\d+) of 15 episodes kept", log)  # none of those flew again
+    assert m and int(m.group(1)) >= len(kept), log[-2000:]

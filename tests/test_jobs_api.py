@@ -320,6 +320,44 @@ def test_a_run_whose_process_is_killed_is_marked_failed_and_the_server_keeps_ser
     assert settled(client, f"/api/evaluations/{other.json()['id']}")["status"] == "finished"
 
 
+def test_a_cancelled_evaluation_resumes_keeping_the_episodes_it_had_finished(serve):
+    client = serve.client
+    ids = list(range(70, 85))
+    created = client.post("/api/evaluations", json={"env_ids": ids})
+    assert created.status_code == 201, created.text
+    path = f"/api/evaluations/{created.json()['id']}"
+    folder = serve.data_dir / "evaluations" / f"{created.json()['id']:04d}"
+    wait_for(lambda: client.get(path).json(), lambda b: b["done"] >= 2, timeout=300, what="two episodes")
+    assert client.delete(path).status_code == 200
+    stopped = settled(client, path, timeout=30)
+    assert stopped["status"] == "cancelled" and 2 <= stopped["done"] < len(ids)
+    kept = client.get(f"{path}/episodes").json()
+    assert len(kept) == stopped["done"]
+    assert (folder / "results.json.partial.jsonl").is_file() and not (folder / "results.json").exists()
+
+    resumed = client.post(f"{path}/resume")
+    assert resumed.status_code == 200, resumed.text
+    assert resumed.json()["status"] == "running" and resumed.json()["error"] is None
+    busy = client.post(f"{path}/resume")
+    assert busy.status_code == 409 and "running" in busy.json()["detail"]
+    final = settled(client, path)
+    assert final["status"] == "finished" and final["done"] == len(ids), final["error"]
+    episodes = client.get(f"{path}/episodes").json()
+    assert [e["env_id"] for e in episodes] == ids
+    by_id = {e["env_id"]: e for e in episodes}
+    for e in kept:  # nothing already saved is lost or flown again
+        assert by_id[e["env_id"]] == e
+    m = re.search(r"resuming: (\d+) of (\d+) episodes kept", (folder / "output.log").read_text())
+    assert m and int(m.group(1)) >= len(kept) and int(m.group(2)) == len(ids)
+    results = json.loads((folder / "results.json").read_text())
+    assert [e["env_id"] for e in results["episodes"]] == ids
+    assert final["summary"]["success"] == results["summary"]["success"]
+    assert not (folder / "results.json.partial.jsonl").exists()
+    again = client.post(f"{path}/resume")
+    assert again.status_code == 409 and "finished" in again.json()["detail"]
+    assert client.post("/api/evaluations/99999/resume").status_code == 404
+
+
 def test_a_server_killed_mid_run_reattaches_and_lists_every_past_job(serve, evaluation):
     client = serve.client
     runs_before = client.get("/api/runs").json()

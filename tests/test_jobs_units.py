@@ -3,6 +3,7 @@ that carry the server's configuration to a job, summaries, a run folder's progre
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -26,7 +27,15 @@ from app.jobs import (
     run_settings,
     summarize_rows,
 )
-from app.jobs_view import compare_html, curve_data, episode_html, episode_label, error_summary, summary_html
+from app.jobs_view import (
+    compare_html,
+    curve_data,
+    episode_html,
+    episode_label,
+    error_summary,
+    resume_hint,
+    summary_html,
+)
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
 
@@ -320,6 +329,11 @@ def test_the_pages_text():
                     cancel_requested=False)
     html = summary_html(ev, {"perception": 1, "goal": 2})
     assert "2/2" in html and "50 %" in html and 'data-stage="goal"' in html and "Failures by attribution (3)" in html
+    assert "gsmn-resumable" not in html and resume_hint(ev) == ""  # finished: nothing to resume
+    stopped = dataclasses.replace(ev, status="cancelled", done=1)
+    assert "Stopped at 1 of 2 episodes" in resume_hint(stopped) and "the other 1" in resume_hint(stopped)
+    assert "gsmn-resumable" in summary_html(stopped, {})
+    assert resume_hint(dataclasses.replace(stopped, source="import")) == ""
     it, loss, action, learner, succeeded = curve_data([
         {"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5}, "learner_step_fraction": 0.1},
         {"iteration": 2, "train": {"loss": 1.0}, "learner_step_fraction": 0.3, "rollout_success": 0.25}])
