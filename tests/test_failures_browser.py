@@ -71,6 +71,16 @@ def wait_js(page, script: str, predicate, timeout: float = 120.0, what: str = ""
     raise AssertionError(f"timed out waiting for {what}; last {value!r}")
 
 
+def evaluate_ids(page, dashboard, ids: str, label: str) -> int:
+    """Evaluate these environment ids from the Failures tab; the new evaluation's id once its label shows."""
+    box = field(page, "Or env ids")
+    box.fill(ids)
+    box.press("Enter")
+    page.get_by_role("button", name="Evaluate", exact=True).click()
+    page.get_by_text(re.compile(label)).first.wait_for()
+    return max(e.id for e in dashboard.jobs.db.evaluations())
+
+
 EVALUATION = """() => { const e = document.querySelector('.gsmn-evaluation');
     return e ? {id: e.dataset.id, status: e.dataset.status, text: e.innerText} : null; }"""
 MAPS = """() => { const m = document.querySelector('.gsmn-maps');
@@ -166,12 +176,7 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     # an evaluation flown as a mirror ensemble, from the same form
     page.get_by_role("tab", name="Failures").click()
     field(page, "As mirror ensemble").check(force=True)
-    ids = field(page, "Or env ids")
-    ids.fill("70")
-    ids.press("Enter")
-    page.get_by_role("button", name="Evaluate", exact=True).click()
-    page.get_by_text(re.compile(r"1 chosen environments, mirror ensemble")).first.wait_for()
-    mirrored = max(e.id for e in dashboard.jobs.db.evaluations())
+    mirrored = evaluate_ids(page, dashboard, "70", r"1 chosen environments, mirror ensemble")
     wait_js(page, EVALUATION, lambda v: v and v["id"] == str(mirrored) and v["status"] == "finished", timeout=180,
             what="the mirror-ensemble evaluation to finish in the page")
     e = dashboard.jobs.db.evaluation(mirrored)
@@ -179,12 +184,7 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
 
     # cancelled part way, then resumed from the page: the episodes it had finished are kept, the rest fly
     field(page, "As mirror ensemble").uncheck(force=True)
-    ids = field(page, "Or env ids")
-    ids.fill("70:85")
-    ids.press("Enter")
-    page.get_by_role("button", name="Evaluate", exact=True).click()
-    page.get_by_text(re.compile(r"15 chosen environments")).first.wait_for()
-    long = max(e.id for e in dashboard.jobs.db.evaluations())
+    long = evaluate_ids(page, dashboard, "70:85", r"15 chosen environments")
     wait_js(page, EVALUATION, lambda v: v and v["id"] == str(long) and re.search(r"\b([2-9]|1[0-4])/15\b", v["text"]),
             timeout=180, what="two episodes of fifteen in the page")
     page.get_by_role("button", name="Cancel", exact=True).click()
