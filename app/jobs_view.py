@@ -573,6 +573,8 @@ def resume_hint(e: Evaluation) -> str:
     """For a cancelled or failed evaluation the dashboard flew: that Resume flies the rest (else "")."""
     if e.status not in (CANCELLED, FAILED) or e.source == "import" or e.done >= e.total:
         return ""
+    if not e.done:
+        return f" Stopped before any episode ended: Resume (with it picked in the failure browser) flies all {e.total}."
     return (f" Stopped at {e.done} of {e.total} episodes: Resume (with it picked in the failure browser) keeps "
             f"those and flies the other {e.total - e.done}.")
 

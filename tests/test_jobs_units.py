@@ -334,6 +334,7 @@ def test_the_pages_text():
     assert "Stopped at 1 of 2 episodes" in resume_hint(stopped) and "the other 1" in resume_hint(stopped)
     assert "gsmn-resumable" in summary_html(stopped, {})
     assert resume_hint(dataclasses.replace(stopped, source="import")) == ""
+    assert "flies all 2" in resume_hint(dataclasses.replace(stopped, status="failed", done=0))
     it, loss, action, learner, succeeded = curve_data([
         {"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5}, "learner_step_fraction": 0.1},
         {"iteration": 2, "train": {"loss": 1.0}, "learner_step_fraction": 0.3, "rollout_success": 0.25}])
