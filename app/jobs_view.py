@@ -453,8 +453,9 @@ class JobsView(RunnerListener):
         elif evaluations and self.eval_progress.visible:
             e = evaluations[-1]
             self.eval_progress.visible = False
-            self.eval_status.content = f"Evaluation {e.id} {e.status}." + (
-                f" {html.escape(error_summary(e.error))}" if e.status == "failed" else "") + resume_hint(e)
+            where = f" at {e.done} of {e.total} episodes (Resume: in the failure browser)" if resume_hint(e) else ""
+            self.eval_status.content = f"Evaluation {e.id} {e.status}{where}." + (
+                f" {html.escape(error_summary(e.error))}" if e.status == "failed" else "")
 
     def _refresh_runs(self, runs: list[Run]) -> None:
         self.runs_table.content = runs_html(runs)
@@ -565,7 +566,7 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
             f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
             f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
             f"{''.join(bars)}{region_summary(regions)}"
-            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{resume_hint(e).strip()}</div>'
+            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{resume_hint(e)}</div>'
                if resume_hint(e) else "") + "</div>")
 
 
@@ -574,9 +575,9 @@ def resume_hint(e: Evaluation) -> str:
     if e.status not in (CANCELLED, FAILED) or e.source == "import" or e.done >= e.total:
         return ""
     if not e.done:
-        return f" Stopped before any episode ended: Resume (with it picked in the failure browser) flies all {e.total}."
-    return (f" Stopped at {e.done} of {e.total} episodes: Resume (with it picked in the failure browser) keeps "
-            f"those and flies the other {e.total - e.done}.")
+        return f"Stopped before any episode ended: <b>Resume</b> (above) flies all {e.total}."
+    return (f"Stopped at {e.done} of {e.total} episodes: <b>Resume</b> (above) keeps those and flies the other "
+            f"{e.total - e.done}.")
 
 
 def region_summary(regions: dict[str, int] | None) -> str:

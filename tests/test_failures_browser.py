@@ -192,6 +192,7 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
                       timeout=60, what="the cancelled evaluation in the page")
     kept = dashboard.jobs.db.episodes(long)
     assert f"Stopped at {len(kept)} of 15 episodes" in stopped["text"] and 2 <= len(kept) < 15
+    page.get_by_text(f"Evaluation {long} cancelled at {len(kept)} of 15 episodes").first.wait_for()
     page.get_by_role("button", name="Resume", exact=True).click()
     page.get_by_text(re.compile(rf"Evaluation {long} \(15 chosen environments\): \d+ of 15")).first.wait_for()
     done = wait_js(page, EVALUATION, lambda v: v and v["id"] == str(long) and v["status"] == "finished",
