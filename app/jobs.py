@@ -316,26 +316,7 @@ class JobManager:
         again with `--resume`, so `gsmn eval` keeps the episodes it had finished (`results.json.partial.jsonl`) and
         flies only the others. `gsmn eval` itself refuses (and the evaluation fails, saying what differs) if the
         checkpoint's weights have changed since."""
-        row = self.evaluation(evaluation_id)
-        if row.status not in (CANCELLED, FAILED):
-            raise Conflict(f"evaluation {evaluation_id} is {row.status}: only a cancelled or failed one resumes")
-        if not row.command or not row.folder:
-            raise Conflict(f"evaluation {evaluation_id} was not flown by this dashboard: it has nothing to resume")
-        folder = Path(row.folder)
-        if not folder.is_dir():
-            raise Conflict(f"evaluation {evaluation_id}'s folder {folder} is gone: evaluate again instead")
-        command = list(row.command)
-        if command[:len(NICE)] == NICE:
-            command = command[len(NICE):]  # _launch adds it again
-        if "--resume" not in command:
-            command.append("--resume")
-        with self._lock:
-            self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
-            # the resumed process writes the progress file anew, the kept episodes first: read it from the start
-            (folder / "progress.jsonl").write_text("")
-            self.db.update_evaluation(evaluation_id, status=QUEUED, cancel_requested=False, error=None, finished=None)
-            self._launch("evaluation", evaluation_id, folder, command)
-        return self.db.evaluation(evaluation_id)
+        return self._resume("evaluation", evaluation_id)
 
     def evaluation(self, evaluation_id: int) -> Evaluation:
         e = self.db.evaluation(evaluation_id)
@@ -446,6 +427,11 @@ class JobManager:
     def cancel_run(self, run_id: int) -> Run:
         return self._cancel("run", run_id)
 
+    def resume_run(self, run_id: int) -> Run:
+        """Continue a cancelled or failed run from what its folder saved: its command again, as the same run (the
+        collection skips the demonstrations it has, `gsmn train dagger` resumes from the run's state)."""
+        return self._resume("run", run_id)
+
     def run(self, run_id: int) -> Run:
         r = self.db.run(run_id)
         if r is None:
@@ -500,6 +486,32 @@ class JobManager:
                 _signal_group(h.pid, signal.SIGTERM)
                 h.kill_at = time.monotonic() + KILL_AFTER
         self._notify(kind, job_id)
+        return self.run(job_id) if kind == "run" else self.evaluation(job_id)
+
+    def _resume(self, kind: str, job_id: int):
+        row = self.run(job_id) if kind == "run" else self.evaluation(job_id)
+        update = self.db.update_run if kind == "run" else self.db.update_evaluation
+        if row.status not in (CANCELLED, FAILED):
+            raise Conflict(f"{kind} {job_id} is {row.status}: only a cancelled or failed one resumes")
+        if not row.command or not row.folder:
+            raise Conflict(f"{kind} {job_id} was not started by this dashboard: it has nothing to resume")
+        folder = Path(row.folder)
+        if not folder.is_dir():
+            raise Conflict(f"{kind} {job_id}'s folder {folder} is gone: start it again instead")
+        command = list(row.command)
+        if command[:len(NICE)] == NICE:
+            command = command[len(NICE):]  # _launch adds it again
+        if kind == "evaluation" and "--resume" not in command:
+            command.append("--resume")
+        with self._lock:
+            if kind == "run":
+                self._check_limit("run", self.max_runs, "--max-runs")
+            else:
+                self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
+                # the resumed process writes the progress file anew, the kept episodes first: read it from the start
+                (folder / "progress.jsonl").write_text("")
+            update(job_id, status=QUEUED, cancel_requested=False, error=None, finished=None)
+            self._launch(kind, job_id, folder, command)
         return self.run(job_id) if kind == "run" else self.evaluation(job_id)
 
     # -- restart -------------------------------------------------------------------------------------------------

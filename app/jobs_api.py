@@ -261,6 +261,11 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
     def cancel_run(run_id: int) -> RunModel:
         return run_model(jobs.cancel_run(run_id))
 
+    @app.post("/api/runs/{run_id}/resume", response_model=RunModel,
+              summary="Continue a cancelled or failed run from the iterations its folder saved")
+    def resume_run(run_id: int) -> RunModel:
+        return run_model(jobs.resume_run(run_id))
+
 
 def replay_policy(e: Evaluation) -> tuple[str, str | None]:
     """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint (as a mirror

@@ -129,7 +129,7 @@ class JobsView(RunnerListener):
                                                       "right swapped (not in the paper; the shipped GSMN's last "
                                                       "iterations used 0.5)")
                 self.run_envs = gui.add_dropdown("Environments", (ENV_TRAIN,))
-                self.run_buttons = gui.add_button_group("Run", ("Launch", "Cancel"))
+                self.run_buttons = gui.add_button_group("Run", ("Launch", "Cancel", "Resume"))
                 self.run_progress = gui.add_progress_bar(0.0, visible=False)
                 self.run_status = gui.add_markdown("A run trains in its own process; one at a time.")
                 self.curves = gui.add_uplot(
@@ -226,7 +226,7 @@ class JobsView(RunnerListener):
                                                                               s.dataset_size)
             self.run_beta0.value, self.run_lr.value, self.run_mirror.value = s.beta0, s.learning_rate, s.mirror
         elif kind == "run":
-            self._launch() if event[1] == "Launch" else self._cancel_run()
+            {"Launch": self._launch, "Cancel": self._cancel_run, "Resume": self._resume_run}[event[1]]()
         elif kind == "run_action":
             self._run_action(event[1])
 
@@ -396,6 +396,19 @@ class JobsView(RunnerListener):
         except RunnerError as err:
             self.run_status.content = error_html(html.escape(str(err)))
 
+    def _resume_run(self) -> None:
+        """Continue the latest run (the one the status line shows) if it was cancelled or failed."""
+        runs = self.jobs.db.runs()
+        if not runs:
+            self.run_status.content = "No run to resume yet."
+            return
+        try:
+            self.jobs.resume_run(runs[-1].id)
+        except RunnerError as err:
+            self.run_status.content = error_html(f"**Not resumed:** {html.escape(str(err))}")
+            return
+        self._refresh()
+
     def _run_action(self, action: str) -> None:
         run_id = self._run_choices.get(self.run_choice.value)
         run = self.jobs.db.run(run_id) if run_id else None
@@ -471,7 +484,8 @@ class JobsView(RunnerListener):
             else:
                 self.run_status.content = f"**Run {shown.id}** {shown.status}" + (
                     f": checkpoint **run-{shown.id}**." if shown.status == FINISHED else
-                    f". {html.escape(error_summary(shown.error))}")
+                    "." + (f" {html.escape(error_summary(shown.error))}" if shown.status == FAILED else "")
+                    + run_resume_hint(shown))
             self.curves.data = curve_data(shown.metrics)
         finished = [r for r in runs if r.status == FINISHED]
         choices = {f"run-{r.id} ({len(r.env_ids) if r.env_ids else 'train'} envs, {r.settings['iterations']} it.)": r.id
@@ -628,6 +642,15 @@ def episode_html(r: EpisodeRow, note: str) -> str:
     return (f'<div class="gsmn-episode" data-env="{r.env_id}" data-evaluation="{r.evaluation_id}" '
             f'style="font-size:13px;padding-right:8px"><div style="font-weight:600">Environment {r.env_id}</div>'
             f"{verdict}<table>{table}</table><div class='gsmn-replay' style='margin-top:4px'>{note}</div></div>")
+
+
+def run_resume_hint(r: Run) -> str:
+    """For a cancelled or failed run the dashboard started: where Resume takes it up (else "")."""
+    if r.status not in (CANCELLED, FAILED) or not r.command:
+        return ""
+    done = len(r.metrics or [])
+    return (f" **Resume** continues it from iteration {done + 1} of {r.settings['iterations']}" if done else
+            " **Resume** starts it again (no iteration had finished)") + "; what its folder saved is kept."
 
 
 def runs_html(runs: list[Run]) -> str:

@@ -1,6 +1,7 @@
 """End to end in headless Chromium: evaluate a checkpoint from the page, open the failure browser, pick a failure
 and replay it in the live view with its maps, launch a tiny DAggerFM run on the failures selected, watch its
-progress to the end, switch to its checkpoint, and compare before/after.
+progress to the end, switch to its checkpoint, and compare before/after; an evaluation and a run each cancelled
+part way and resumed from the page.
 
 Real processes (the evaluation and the run are `gsmn eval` and `gsmn train dagger` children of the server), a
 real SQLite record, a real Chromium. Like tests/test_dashboard_browser.py it fails, not skips, without Playwright
@@ -203,3 +204,30 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     log = (Path(dashboard.jobs.db.evaluation(long).folder) / "output.log").read_text()
     m = re.search(r"resuming: (\d+) of 15 episodes kept", log)  # none of those flew again
     assert m and int(m.group(1)) >= len(kept), log[-2000:]
+
+    # a fine-tuning run cancelled after its first iteration, then resumed from the page where it stopped
+    page.get_by_role("tab", name="Fine-tune").click()
+    field(page, "Environments").click()
+    page.get_by_role("option", name="train split", exact=True).click()
+    iterations = field(page, "Iterations")
+    iterations.fill("3")
+    iterations.press("Enter")
+    known = {r.id for r in dashboard.jobs.db.runs()}
+    page.get_by_role("button", name="Launch", exact=True).click()
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and not any(
+            r.id not in known and len(r.metrics) >= 1 for r in dashboard.jobs.db.runs()):
+        page.wait_for_timeout(200)
+    rid = max(r.id for r in dashboard.jobs.db.runs())
+    assert rid not in known and dashboard.jobs.db.run(rid).settings["iterations"] == 3
+    page.get_by_role("button", name="Cancel", exact=True).click()
+    text = wait_js(page, "() => document.body.innerText", lambda t: f"Run {rid} cancelled." in t, timeout=60,
+                   what="the cancelled run in the page")
+    saved = dashboard.jobs.db.run(rid).metrics
+    assert 1 <= len(saved) < 3 and f"Resume continues it from iteration {len(saved) + 1} of 3" in text
+    page.get_by_role("button", name="Resume", exact=True).click()
+    wait_js(page, "() => document.body.innerText", lambda t: f"checkpoint run-{rid}" in t or f"Run {rid} failed" in t,
+            timeout=300, what="the resumed run to finish")
+    run = dashboard.jobs.db.run(rid)
+    assert run.status == "finished" and [m["iteration"] for m in run.metrics] == [1, 2, 3], run.error
+    assert run.metrics[:len(saved)] == saved

@@ -1,8 +1,8 @@
 """Evaluations and DAggerFM fine-tuning runs through the HTTP API of a real `gsmn serve` process, with real job
 processes and a real SQLite record in a data folder: an evaluation with failure attribution and a replay that
 reproduces it, a tiny fine-tuning run on its failures that finishes with a checkpoint that loads and flies, a
-before/after evaluation, limits, cancelling, a job process killed from outside, and a server killed and restarted
-mid-run that re-attaches to the run and still lists everything."""
+before/after evaluation, limits, cancelling and resuming, a job process killed from outside, and a server killed and
+restarted mid-run that re-attaches to the run and still lists everything."""
 
 from __future__ import annotations
 
@@ -292,6 +292,29 @@ def test_a_cancelled_run_stops_its_processes_and_is_marked_cancelled(serve):
     again = client.delete(f"/api/runs/{run['id']}")
     assert again.status_code == 409 and "cancelled" in again.json()["detail"]
     assert client.get("/api/health").json()["status"] == "ok"
+
+
+def test_a_cancelled_run_resumes_from_the_iterations_it_had_saved(serve):
+    client = serve.client
+    run = client.post("/api/runs", json={"preset": "tiny", "iterations": 3, "env_ids": [3, 5]}).json()
+    path = f"/api/runs/{run['id']}"
+    wait_for(lambda: client.get(path).json(), lambda b: len(b["metrics"]) >= 1, timeout=300, what="an iteration")
+    assert client.delete(path).status_code == 200
+    stopped = settled(client, path, timeout=30)
+    assert stopped["status"] == "cancelled" and 1 <= len(stopped["metrics"]) < 3, stopped
+    resumed = client.post(f"{path}/resume")
+    assert resumed.status_code == 200, resumed.text
+    assert resumed.json()["status"] == "running" and resumed.json()["error"] is None
+    final = settled(client, path, timeout=400)
+    assert final["status"] == "finished", final["error"]
+    assert [m["iteration"] for m in final["metrics"]] == [1, 2, 3]
+    assert final["metrics"][:len(stopped["metrics"])] == stopped["metrics"]  # the saved iterations, not trained again
+    from gsmn.model.checkpoint import load_checkpoint
+
+    load_checkpoint(final["checkpoint"])
+    again = client.post(f"{path}/resume")
+    assert again.status_code == 409 and "finished" in again.json()["detail"]
+    assert client.post("/api/runs/99999/resume").status_code == 404
 
 
 def test_a_run_whose_process_is_killed_is_marked_failed_and_the_server_keeps_serving(serve):

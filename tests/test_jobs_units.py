@@ -34,6 +34,7 @@ from app.jobs_view import (
     episode_label,
     error_summary,
     resume_hint,
+    run_resume_hint,
     summary_html,
 )
 from gsmn.config import preset, with_overrides
@@ -284,6 +285,10 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
               progress=None, metrics=[], checkpoint=None, error=None, cancel_requested=False)
     p, metrics = run_progress(tmp_path, row)
     assert p["phase"] == "expert data" and p["fraction"] == 0 and metrics == []
+    assert run_resume_hint(row) == ""  # running
+    stopped = dataclasses.replace(row, status="cancelled", command=["sh", "-c", "x"])
+    assert "starts it again" in run_resume_hint(stopped)
+    assert "from iteration 2 of 4" in run_resume_hint(dataclasses.replace(stopped, metrics=[{"iteration": 1}]))
     run = tmp_path / "run"
     run.mkdir()
     (run / "config.json").write_text("{}")
