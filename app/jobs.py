@@ -489,25 +489,26 @@ class JobManager:
         return self.run(job_id) if kind == "run" else self.evaluation(job_id)
 
     def _resume(self, kind: str, job_id: int):
-        row = self.run(job_id) if kind == "run" else self.evaluation(job_id)
         update = self.db.update_run if kind == "run" else self.db.update_evaluation
-        if row.status not in (CANCELLED, FAILED):
-            raise Conflict(f"{kind} {job_id} is {row.status}: only a cancelled or failed one resumes")
-        if not row.command or not row.folder:
-            raise Conflict(f"{kind} {job_id} was not started by this dashboard: it has nothing to resume")
-        folder = Path(row.folder)
-        if not folder.is_dir():
-            raise Conflict(f"{kind} {job_id}'s folder {folder} is gone: start it again instead")
-        command = list(row.command)
-        if command[:len(NICE)] == NICE:
-            command = command[len(NICE):]  # _launch adds it again
-        if kind == "evaluation" and "--resume" not in command:
-            command.append("--resume")
-        with self._lock:
+        with self._lock:  # checked and relaunched as one step: two requests at once cannot start it twice
+            row = self.run(job_id) if kind == "run" else self.evaluation(job_id)
+            if row.status not in (CANCELLED, FAILED):
+                raise Conflict(f"{kind} {job_id} is {row.status}: only a cancelled or failed one resumes")
+            if not row.command or not row.folder:
+                raise Conflict(f"{kind} {job_id} has no command recorded (imported, or it never started): "
+                               "nothing to resume")
+            folder = Path(row.folder)
+            if not folder.is_dir():
+                raise Conflict(f"{kind} {job_id}'s folder {folder} is gone: start it again instead")
+            command = list(row.command)
+            if command[:len(NICE)] == NICE:
+                command = command[len(NICE):]  # _launch adds it again
             if kind == "run":
                 self._check_limit("run", self.max_runs, "--max-runs")
             else:
                 self._check_limit("evaluation", self.max_evaluations, "--max-evaluations")
+                if "--resume" not in command:
+                    command.append("--resume")
                 # the resumed process writes the progress file anew, the kept episodes first: read it from the start
                 (folder / "progress.jsonl").write_text("")
             update(job_id, status=QUEUED, cancel_requested=False, error=None, finished=None)
