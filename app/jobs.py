@@ -157,6 +157,12 @@ class _Handle:
     last: str = ""  # the last progress written to the database, to write only changes
 
 
+def resumable(job: Evaluation | Run) -> bool:
+    """What `JobManager.resume_evaluation` / `resume_run` accept: a cancelled or failed job with a command
+    recorded (not an import)."""
+    return job.status in (CANCELLED, FAILED) and bool(job.command)
+
+
 def _alive(h: _Handle) -> tuple[bool, int | None]:
     """(running, exit code if known)."""
     if h.proc is not None:
@@ -494,7 +500,7 @@ class JobManager:
             row = self.run(job_id) if kind == "run" else self.evaluation(job_id)
             if row.status not in (CANCELLED, FAILED):
                 raise Conflict(f"{kind} {job_id} is {row.status}: only a cancelled or failed one resumes")
-            if not row.command or not row.folder:
+            if not resumable(row) or not row.folder:
                 raise Conflict(f"{kind} {job_id} has no command recorded (imported, or it never started): "
                                "nothing to resume")
             folder = Path(row.folder)

@@ -22,8 +22,8 @@ import viser
 import viser.uplot
 
 from app.commands import RunnerError, RunnerListener, StartEpisode
-from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, EpisodeRow, Evaluation, Run
-from app.jobs import RUN_PRESETS, JobManager, run_settings
+from app.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
+from app.jobs import RUN_PRESETS, JobManager, resumable, run_settings
 from app.jobs_api import replay_policy
 from app.panels import error_html, region_text
 from app.recording import Episode
@@ -575,18 +575,19 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
                     f'border-radius:2px"></span></span><b style="width:24px;text-align:right">{n}</b></div>')
     distance = s.get("mean_distance")
     distance = "n/a" if distance is None or math.isnan(distance) else f"{distance:.1f} m"
+    hint = resume_hint(e)
     return (f'<div class="gsmn-evaluation" data-id="{e.id}" data-status="{e.status}" style="font-size:13px">'
             f"<div><b>{e.done}/{e.total}</b> episodes · success <b>{_pct(s.get('success'))}</b> · landmark "
             f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
             f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
             f"{''.join(bars)}{region_summary(regions)}"
-            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{resume_hint(e)}</div>'
-               if resume_hint(e) else "") + "</div>")
+            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{hint}</div>' if hint else "")
+            + "</div>")
 
 
 def resume_hint(e: Evaluation) -> str:
-    """For a cancelled or failed evaluation the dashboard flew: that Resume flies the rest (else "")."""
-    if e.status not in (CANCELLED, FAILED) or e.source == "import" or e.done >= e.total:
+    """For a resumable evaluation with episodes left: that Resume flies the rest (else "")."""
+    if not resumable(e) or e.done >= e.total:
         return ""
     if not e.done:
         return f"Stopped before any episode ended: <b>Resume</b> (above) flies all {e.total}."
@@ -646,7 +647,7 @@ def episode_html(r: EpisodeRow, note: str) -> str:
 
 def run_resume_hint(r: Run) -> str:
     """For a cancelled or failed run the dashboard started: where Resume takes it up (else "")."""
-    if r.status not in (CANCELLED, FAILED) or not r.command:
+    if not resumable(r):
         return ""
     done = len(r.metrics or [])
     return (f" **Resume** continues it from iteration {done + 1} of {r.settings['iterations']}" if done else

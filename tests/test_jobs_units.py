@@ -335,10 +335,10 @@ def test_the_pages_text():
     html = summary_html(ev, {"perception": 1, "goal": 2})
     assert "2/2" in html and "50 %" in html and 'data-stage="goal"' in html and "Failures by attribution (3)" in html
     assert "gsmn-resumable" not in html and resume_hint(ev) == ""  # finished: nothing to resume
-    stopped = dataclasses.replace(ev, status="cancelled", done=1)
+    stopped = dataclasses.replace(ev, status="cancelled", done=1, command=["gsmn", "eval"])
     assert "Stopped at 1 of 2 episodes" in resume_hint(stopped) and "the other 1" in resume_hint(stopped)
     assert "gsmn-resumable" in summary_html(stopped, {})
-    assert resume_hint(dataclasses.replace(stopped, source="import")) == ""
+    assert resume_hint(dataclasses.replace(stopped, source="import", command=None)) == ""
     assert "flies all 2" in resume_hint(dataclasses.replace(stopped, status="failed", done=0))
     it, loss, action, learner, succeeded = curve_data([
         {"iteration": 1, "train": {"loss": 2.0, "loss_action": 0.5}, "learner_step_fraction": 0.1},
