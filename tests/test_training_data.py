@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -48,6 +52,24 @@ def test_store_round_trip_is_exact_and_atomic(tmp_path):
     store.path("bad").write_bytes(b"not an npz file")
     with pytest.raises(StoreError, match="malformed"):
         store.read("bad")
+    store.path("empty").write_bytes(b"")
+    with pytest.raises(StoreError, match="malformed"):
+        store.read("empty")
+
+
+def test_a_write_killed_part_way_leaves_no_episode_and_its_file_is_swept(tmp_path):
+    """A run cancelled while writing leaves `.KEY.PID.tmp.npz` behind: it is never listed as an episode, and a
+    store opened later removes it once its writer is gone (a writer still alive keeps its file)."""
+    store = EpisodeStore(tmp_path / "store")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    left = tmp_path / "store" / f".env_000070.{dead}.tmp.npz"
+    left.write_bytes(b"PK\x03\x04 part of a zip")
+    live = tmp_path / "store" / f".env_000071.{os.getpid()}.tmp.npz"
+    live.write_bytes(b"")
+    assert store.keys() == [] and len(store) == 0 and "env_000070" not in store
+    EpisodeStore(tmp_path / "store")
+    assert not left.exists() and live.exists()
 
 
 def test_collection_resumes_and_parallel_workers_write_the_same_episodes(tmp_path):

@@ -23,6 +23,7 @@ from gsmn.task.instructions import Instruction
 from gsmn.world.spec import WorldSpec
 
 _ARRAYS = ("images", "T_world_camera", "K", "poses", "actions")
+_TMP_SUFFIX = ".tmp.npz"
 
 
 class StoreError(ValueError):
@@ -35,12 +36,14 @@ class EpisodeStore:
     def __init__(self, root: Path | str):
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
+        self._sweep()
 
     def path(self, key: str) -> Path:
         return self.root / f"{key}.npz"
 
     def keys(self) -> list[str]:
-        return sorted(p.stem for p in self.root.glob("*.npz"))
+        """The whole episodes' keys; a write's temporary file (a dot name) is never one."""
+        return sorted(p.stem for p in self.root.glob("*.npz") if not p.name.startswith("."))
 
     def __len__(self) -> int:
         return len(self.keys())
@@ -56,12 +59,24 @@ class EpisodeStore:
                 raise ValueError(f"episode {key}: {name} has shape {getattr(sample, name).shape}, expected {shape}")
         text = json.dumps({"world": sample.world.to_dict(), "instruction": _instruction_dict(sample.instruction),
                            "meta": meta or {}})
-        tmp = self.root / f".{key}.{os.getpid()}.tmp.npz"
-        np.savez_compressed(tmp, images=np.ascontiguousarray(sample.images, dtype=np.uint8),
-                            T_world_camera=sample.T_world_camera.astype(np.float32), K=sample.K.astype(np.float32),
-                            poses=sample.poses.astype(np.float32), actions=sample.actions.astype(np.float32),
-                            json=np.frombuffer(text.encode(), dtype=np.uint8))
-        tmp.replace(self.path(key))
+        tmp = self.root / f".{key}.{os.getpid()}{_TMP_SUFFIX}"
+        try:
+            np.savez_compressed(tmp, images=np.ascontiguousarray(sample.images, dtype=np.uint8),
+                                T_world_camera=sample.T_world_camera.astype(np.float32),
+                                K=sample.K.astype(np.float32), poses=sample.poses.astype(np.float32),
+                                actions=sample.actions.astype(np.float32),
+                                json=np.frombuffer(text.encode(), dtype=np.uint8))
+            tmp.replace(self.path(key))
+        except BaseException:  # a cancelled write (Ctrl-C, SIGTERM) leaves no part-written file
+            tmp.unlink(missing_ok=True)
+            raise
+
+    def _sweep(self) -> None:
+        """Remove temporary files left by writers that were killed outright (SIGKILL): their pid is gone."""
+        for tmp in self.root.glob(f".*{_TMP_SUFFIX}"):
+            pid = tmp.name[: -len(_TMP_SUFFIX)].rpartition(".")[2]
+            if pid.isdigit() and not _alive(int(pid)):
+                tmp.unlink(missing_ok=True)
 
     def read(self, key: str) -> EpisodeSample:
         return self.read_with_meta(key)[0]
@@ -89,7 +104,7 @@ class EpisodeStore:
                 return {name: f[name] for name in names}
         except FileNotFoundError:
             raise StoreError(f"no episode {key!r} in {self.root}") from None
-        except (OSError, KeyError, ValueError) as e:
+        except (OSError, EOFError, KeyError, ValueError) as e:
             raise StoreError(f"episode file {path} is malformed: {e}") from e
 
     def delete(self, key: str) -> None:
@@ -102,6 +117,16 @@ class EpisodeStore:
     def frames(self) -> int:
         """Total number of frames (reads only the small pose arrays)."""
         return sum(len(self._load(key, ("poses",))["poses"]) for key in self.keys())
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
 
 
 def _instruction_dict(instruction: Instruction) -> dict:
