@@ -140,7 +140,7 @@ class JobsView(RunnerListener):
                             {"label": "rollouts succeeded", "stroke": "#8e44ad", "width": 2}),
                     title="Training loss per iteration; the shares of steps the learner flew and of the "
                           "iteration's rollouts that succeeded", aspect=1.6,
-                    scales={"x": {"time": False}}, axes=({"label": "iteration"}, {}))
+                    scales=curve_scales(None), axes=({"label": "iteration"}, {}))
             with gui.add_folder("Runs"):
                 self.runs_table = gui.add_html("")
                 self.run_choice = gui.add_dropdown("Finished run", ("(none yet)",))
@@ -487,6 +487,9 @@ class JobsView(RunnerListener):
                     "." + (f" {html.escape(error_summary(shown.error))}" if shown.status == FAILED else "")
                     + run_resume_hint(shown))
             self.curves.data = curve_data(shown.metrics)
+            scales = curve_scales(shown)
+            if self.curves.scales != scales:  # sent only when the run shown changes
+                self.curves.scales = scales
         finished = [r for r in runs if r.status == FINISHED]
         choices = {f"run-{r.id} ({len(r.env_ids) if r.env_ids else 'train'} envs, {r.settings['iterations']} it.)": r.id
                    for r in reversed(finished)}
@@ -668,6 +671,16 @@ def runs_html(runs: list[Run]) -> str:
                     f"<td>{100 * float(p.get('fraction', 0)):.0f} %</td><td>{envs}</td>"
                     f"<td>{'' if loss is None else f'{loss:.3f}'}</td></tr>")
     return f"<table class='gsmn-runs' style='font-size:12px'><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def curve_scales(run: Run | None) -> dict:
+    """The chart's x axis spans the run's planned iterations, from 1: the curves grow across it as the run goes
+    (uPlot's own range for a single point is 0-100, which read as a hundred iterations)."""
+    if run is None:
+        return {"x": {"time": False}}
+    planned = int(run.settings.get("iterations") or 0) if run.settings else 0
+    last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1)
+    return {"x": {"time": False, "range": (1.0, float(max(planned, last, 2)))}}
 
 
 def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:

@@ -30,6 +30,7 @@ from app.jobs import (
 from app.jobs_view import (
     compare_html,
     curve_data,
+    curve_scales,
     episode_html,
     episode_label,
     error_summary,
@@ -289,6 +290,11 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
     stopped = dataclasses.replace(row, status="cancelled", command=["sh", "-c", "x"])
     assert "starts it again" in run_resume_hint(stopped)
     assert "from iteration 2 of 4" in run_resume_hint(dataclasses.replace(stopped, metrics=[{"iteration": 1}]))
+    # the chart's x axis spans the planned iterations from the first point on (uPlot alone gives 0-100)
+    assert curve_scales(None) == {"x": {"time": False}}
+    assert curve_scales(dataclasses.replace(row, metrics=[{"iteration": 1}]))["x"]["range"] == (1.0, 4.0)
+    assert curve_scales(dataclasses.replace(row, settings={"iterations": 1}))["x"]["range"] == (1.0, 2.0)
+    assert curve_scales(dataclasses.replace(row, settings={}, metrics=[{"iteration": 7}]))["x"]["range"] == (1.0, 7.0)
     run = tmp_path / "run"
     run.mkdir()
     (run / "config.json").write_text("{}")
