@@ -53,8 +53,11 @@ def test_store_round_trip_is_exact_and_atomic(tmp_path):
     with pytest.raises(StoreError, match="malformed"):
         store.read("bad")
     store.path("empty").write_bytes(b"")
-    with pytest.raises(StoreError, match="malformed"):
-        store.read("empty")
+    whole = store.path("a").read_bytes()
+    store.path("cut").write_bytes(whole[: len(whole) // 2])  # a zip cut short
+    for key in ("empty", "cut"):
+        with pytest.raises(StoreError, match="malformed"):
+            store.read(key)
 
 
 def test_a_write_killed_part_way_leaves_no_episode_and_its_file_is_swept(tmp_path):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -104,7 +105,7 @@ class EpisodeStore:
                 return {name: f[name] for name in names}
         except FileNotFoundError:
             raise StoreError(f"no episode {key!r} in {self.root}") from None
-        except (OSError, EOFError, KeyError, ValueError) as e:
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile) as e:
             raise StoreError(f"episode file {path} is malformed: {e}") from e
 
     def delete(self, key: str) -> None:
