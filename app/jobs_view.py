@@ -678,7 +678,7 @@ def curve_scales(run: Run | None) -> dict:
     (uPlot's own range for a single point is 0-100, which read as a hundred iterations)."""
     if run is None:
         return {"x": {"time": False}}
-    planned = int(run.settings.get("iterations") or 0) if run.settings else 0
+    planned = int(run.settings.get("iterations") or 0)
     last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1)
     return {"x": {"time": False, "range": (1.0, float(max(planned, last, 2)))}}
 
