@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -372,3 +373,27 @@ def test_state_killed_between_its_two_renames_is_recovered(tmp_path):
     assert run.has_state()
     state = run.load_state(torch.nn.Linear(2, 2), torch.optim.Adam(model.parameters()))
     assert (state.epoch, state.step) == (1, 7) and (run.state_dir / "state.json").is_file()
+
+
+def test_dagger_resumed_without_its_dataset_refills_it_from_the_current_mixture(stores, supervised_checkpoint,
+                                                                                 tmp_path):
+    """The run's state survives (restored on a new machine), its episodes do not: before the next iteration the run
+    flies M rollouts of the current mixture policy into D, says so, and goes on to the end."""
+    train, _ = stores
+    run = tmp_path / "dagger"
+    train_dagger(run, supervised_checkpoint, DAGGER, train, log=lambda s: None,
+                 stop_after=lambda state: state.batch == 0 and state.epoch == 1)
+    assert len(RunFolder(run).read_log()) == 1
+    shutil.rmtree(run / "dataset")
+    lines = []
+    train_dagger(run, supervised_checkpoint, DAGGER, train, log=lines.append)
+    assert any("holds 0 of its 3 episodes; refilling it with 3 rollouts of the current mixture policy (beta 0.25)"
+               in line for line in lines)
+    log = RunFolder(run).read_log()
+    assert [r["iteration"] for r in log] == [1, 2] and "refilled" not in log[0] and log[1]["refilled"] == 3
+    dataset = EpisodeStore(run / "dataset")
+    assert len(dataset) == 3, "M episodes again after the iteration's discard and rollouts"
+    # 3 refills, then the iteration dropped 2 of D's 3 and flew N_D = 2: one refill is left beside the new two
+    keys = dataset.keys()
+    assert sum(k.startswith("refill_0002_") for k in keys) == 1 and sum(k.startswith("dagger_0002_") for k in keys) == 2
+    assert all(m["iteration"] == 2 and m["beta"] == 0.25 for m in map(dataset.read_meta, keys))

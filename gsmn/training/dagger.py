@@ -13,7 +13,9 @@ written before each collection); a rollout is cut when the drone strays 4.5 m fr
 not in the paper), so that the rollouts visit the states of the policy as it is deployed; one network is
 trained. The run is resumable after a kill at any point: each phase writes down what it will do (the keys to
 discard, the rollouts to fly) in the saved state before doing it, episodes are written atomically, and the
-epoch resumes batch by batch as in supervised training.
+epoch resumes batch by batch as in supervised training. A run resumed from its saved state without its dataset
+(the state restored on a new machine, the episodes gone) first refills D to M episodes with rollouts of the current
+mixture policy, and says so in its log (not in Algorithm 1: docs/design.md).
 
 Each iteration's log record has, beside the dev figures on expert states, the closed loop of its own rollouts:
 `rollout_success`, the share of them that ended in success as `gsmn eval` scores it, and `rollout_cut`, the
@@ -85,12 +87,13 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
                  stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
-                 init_optimizer: bool = False) -> Path:
+                 init_optimizer: bool = False, on_iteration: Callable[[TrainState], None] | None = None) -> Path:
     """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
 
     Rollouts are drawn from `env_ids` (default: the environments of the expert store). With `init_optimizer`,
     Adam starts from the optimizer state saved in `init` (a run continued from an earlier run's checkpoint keeps
-    its optimizer, as Algorithm 1's iterations do), else fresh."""
+    its optimizer, as Algorithm 1's iterations do), else fresh. `on_iteration(state)` is called after each finished
+    iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere)."""
     torch.set_num_threads(config.train.threads)
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
@@ -106,6 +109,9 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
         env_ids = sorted({expert_store.read_meta(k).get("env_id", -1) for k in expert_keys} - {-1})
     if not env_ids:
         raise ValueError("no environments to roll out in: give env_ids or an expert store with env ids")
+    # D holds M episodes from the start on (each iteration drops N_D and adds N_D); a run resumed without its
+    # dataset (a new machine: the run's state restored, its episodes gone) refills it before the next iteration
+    expected = min(dc.dataset_size, len(expert_keys)) if expert_keys else dc.dataset_size
 
     if state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
         chosen = _rng(seed, 0).choice(len(expert_keys), size=min(dc.dataset_size, len(expert_keys)), replace=False)
@@ -119,7 +125,27 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
         while state.epoch < dc.iterations:
             i = state.epoch + 1  # iteration index, from 1
             beta = beta_schedule(dc.beta0, i)
+            if state.extra["phase"] == "discard" and len(dataset) < expected:  # e.g. lost with its machine
+                missing = expected - len(dataset)
+                rng = _rng(seed, i, 1)
+                jobs = [(f"refill_{i:04d}_{k:03d}_env_{e:06d}", int(e), i, beta, int(rng.integers(2**31)))
+                        for k, e in enumerate(rng.choice(env_ids, size=missing, replace=True))]
+                log(f"iteration {i}: the dataset holds {len(dataset)} of its {expected} episodes; refilling it with "
+                    f"{missing} rollouts of the current mixture policy (beta {beta:.4g}), labelled by the expert")
+                state.extra = {"phase": "refill", "jobs": jobs}
+                run.save_state(model, optimizer, state)
+            if state.extra["phase"] == "refill":
+                save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
+                todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
+                if todo:
+                    pool = pool or _make_pool(config, dataset, run.root / "policy")
+                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                        _report(run, on_progress, {"phase": "collect", "iteration": i, "iterations": dc.iterations,
+                                                   "beta": round(beta, 4), "rollouts": len(todo), "done": k})
+                state.extra = {"phase": "discard", "refilled": len(state.extra["jobs"])}
+                run.save_state(model, optimizer, state)
             if state.extra["phase"] == "discard":
+                refilled = state.extra.get("refilled", 0)
                 keys = dataset.keys()
                 rng = _rng(seed, i)
                 drop = [keys[j] for j in rng.choice(len(keys), size=min(dc.rollouts_per_iteration, len(keys)),
@@ -127,7 +153,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 new_envs = [int(e) for e in rng.choice(env_ids, size=dc.rollouts_per_iteration, replace=True)]
                 jobs = [(f"dagger_{i:04d}_{k:03d}_env_{e:06d}", e, i, beta, int(rng.integers(2**31)))
                         for k, e in enumerate(new_envs)]
-                state.extra = {"phase": "collect", "drop": drop, "jobs": jobs}
+                state.extra = {"phase": "collect", "drop": drop, "jobs": jobs, "refilled": refilled}
                 run.save_state(model, optimizer, state)
             if state.extra["phase"] == "collect":
                 for key in state.extra["drop"]:
@@ -142,7 +168,8 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                     pool = pool or _make_pool(config, dataset, run.root / "policy")
                     for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
                         _report(run, on_progress, {**collect, "done": n_jobs - len(todo) + k})
-                state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"])}
+                state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"]),
+                               "refilled": state.extra.get("refilled", 0)}
                 run.save_state(model, optimizer, state)
             if state.extra["phase"] == "train":
                 if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
@@ -156,8 +183,12 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 if mix.get("scored") and mix["scored"] == mix["rollouts"]:  # rollouts before 2026-11-29 kept none
                     record.update(rollout_success=mix["success"] / mix["scored"],
                                   rollout_cut=mix["cut"] / mix["scored"])
+                if state.extra.get("refilled"):
+                    record["refilled"] = state.extra["refilled"]  # rollouts flown to refill a lost dataset
                 state.extra = {"phase": "discard"}
                 finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log)
+                if on_iteration:
+                    on_iteration(state)
                 if stop_after and stop_after(state):
                     break
     finally:

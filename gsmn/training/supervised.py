@@ -245,9 +245,11 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
 def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_store: EpisodeStore,
                      dev_store: EpisodeStore | None = None, init: Path | None = None,
                      log: Logger = print, stop_after: Callable[[TrainState], bool] | None = None,
-                     on_progress: Progress | None = None, init_optimizer: bool = False) -> Path:
+                     on_progress: Progress | None = None, init_optimizer: bool = False,
+                     on_epoch: Callable[[TrainState], None] | None = None) -> Path:
     """Train (or resume training) `kind` on `train_store`; returns the checkpoint folder. With `init_optimizer`,
-    a new run's Adam starts from the optimizer state saved in the checkpoint `init`.
+    a new run's Adam starts from the optimizer state saved in the checkpoint `init`. `on_epoch(state)` is called
+    after each finished epoch, once its checkpoint and state are saved.
 
     `stop_after(state)` is asked after every saved state and may end the call early (the run stays
     resumable); tests use it, the command line does not."""
@@ -268,6 +270,8 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
             return run.checkpoint_dir
         run.write_progress({"phase": "validate", "epoch": state.epoch + 1, "epochs": config.train.epochs}, force=True)
         finish_epoch(run, model, optimizer, vocabulary, config, state, {"epoch": state.epoch + 1}, dev_store, log)
+        if on_epoch:
+            on_epoch(state)
         if stop_after and stop_after(state):
             break
     if state.epoch >= config.train.epochs:
