@@ -417,6 +417,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_dagger)
 
+    p = sub.add_parser("experiment", help="run a whole experiment programme of the paper, resumable")
+    from gsmn.experiments import table2
+
+    table2.add_parser(p.add_subparsers(dest="experiment", required=True))
+
     p = sub.add_parser("serve", help="serve the dashboard: the browser view (viser) and the HTTP API (FastAPI)")
     p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
                    "when it exists; without one the expert flies and the page says so)")

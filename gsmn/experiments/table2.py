@@ -1,0 +1,552 @@
+"""The paper's Table 2 (development results): GSMN, its four ablations and GSMN observing noisy poses, trained with
+one recipe and flown on the same dev environments; `gsmn experiment table2 --out DIR` runs it all and resumes it
+wherever it stopped.
+
+Each system is the control's configuration with one switch changed (`SYSTEMS`); everything else (the expert data,
+epochs, DAggerFM schedule, seeds, evaluation) is the `Recipe`'s, the same for all. Per system, in order:
+
+    supervised   `recipe.epochs` epochs on the expert data of `recipe.train_envs` train environments
+    dagger       `recipe.iterations` DAggerFM iterations in fresh train environments (the ones after the first
+                 `recipe.train_envs`), from the supervised checkpoint, with Adam started afresh
+    evaluate     flown plainly on the first `recipe.eval_envs` dev environments with the maps recorded, each failure
+                 attributed to a stage (gsmn.attribution)
+
+Surviving the loss of the machine. `runs/` and `data/` may be gone at the next start. The expert data is rebuilt by
+collection (deterministic by environment id). Each system's latest finished stage (every `publish_every_epochs`
+supervised epochs, the end of supervised learning, every `publish_every_iterations` DAggerFM iterations, the end)
+is copied to `SHIP/<name>/` (a checkpoint folder: weights, config, vocabulary, meta and Adam state, plus the run's
+small JSON files in `run/`; never images), replacing the previous copy; with `git_commit` it is committed at once.
+A start whose run folder is behind that copy restores the run from it and goes on; a DAggerFM run restored this
+way has no dataset and refills it from the current mixture policy (gsmn.training.dagger). The finished evaluation
+is kept there too, compactly (`evaluation.json`: one line of figures per episode, no trajectories), so the table
+needs nothing else.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gsmn.config import RunConfig, preset, with_overrides
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_SHIP = ROOT / "checkpoints" / "table2"
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """The training and evaluation budget shared by every system (docs/training.md, "The ablation programme")."""
+
+    train_envs: int = 600  # expert episodes for supervised learning: the first N train environments
+    dev_envs: int = 40  # expert episodes on dev, for the per-epoch validation figures (Figure 4)
+    epochs: int = 16
+    learning_rate: float = 1e-3  # supervised (the paper's)
+    iterations: int = 15  # DAggerFM
+    rollouts: int = 48  # N_D
+    dataset_size: int = 192  # M; the initial D comes from expert episodes in M fresh train environments
+    beta0: float = 0.5
+    dagger_learning_rate: float = 3e-4
+    fresh_envs: int = 2400  # the train environments after the first `train_envs` that DAggerFM flies in
+    eval_envs: int = 300  # the first N dev environments, flown plainly
+    publish_every_epochs: int = 4
+    publish_every_iterations: int = 5
+    control_gate: float = 60.0  # the control's dev success (%) below which the drops would be noise: stop there
+    preset: str = "paper"
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+RECIPES = {
+    "paper": Recipe(),
+    # seconds per stage: the tests run the whole programme with it
+    "tiny": Recipe(train_envs=3, dev_envs=2, epochs=2, iterations=2, rollouts=2, dataset_size=2, fresh_envs=4,
+                   eval_envs=2, publish_every_epochs=1, publish_every_iterations=1, control_gate=0.0, preset="tiny"),
+}
+
+
+@dataclass(frozen=True)
+class System:
+    name: str  # folder name under SHIP and OUT
+    label: str  # as the dashboard and the table name it
+    kind: str  # model kind (gsmn.model.models.KINDS)
+    switch: dict[str, Any] = field(default_factory=dict)  # the config fields this system changes, by dotted path
+
+
+SYSTEMS = (
+    System("gsmn", "GSMN", "gsmn"),
+    # the kind marks the goal head as untrained for attribution and evaluation; its loss is the control's without J_plan
+    System("no-plan", "GSMN without J_plan", "gsmn-no-plan", {"loss.goal": False}),
+    System("no-ground", "GSMN without J_ground", "gsmn", {"loss.grounding": False}),
+    System("no-lang", "GSMN without J_lang", "gsmn", {"loss.language": False}),
+    System("no-percept", "GSMN without J_percept", "gsmn", {"loss.perception": False}),
+    # the original code's 0.5 m standard deviation on x, y, z, fresh at every forward pass, in training and flight;
+    # no yaw noise, as the paper's eta = [eta_x, eta_y, eta_z, 0, 0, 0] (docs/training.md)
+    System("pose-noise", "GSMN + pose noise", "gsmn", {"model.pose_noise_std": 0.5}),
+)
+BY_NAME = {s.name: s for s in SYSTEMS}
+
+
+def system_configs(system: System, recipe: Recipe, threads: int = 2) -> tuple[RunConfig, RunConfig]:
+    """The supervised and the DAggerFM configuration of `system` under `recipe`."""
+    base = preset(recipe.preset)
+    common = {"train.batch_size": "1", "train.threads": str(threads), "train.epochs": str(recipe.epochs),
+              "dagger.iterations": str(recipe.iterations), "dagger.rollouts_per_iteration": str(recipe.rollouts),
+              "dagger.dataset_size": str(recipe.dataset_size), "dagger.beta0": str(recipe.beta0),
+              "dagger.workers": "1" if threads == 1 else "2"}
+    common.update({path: str(value) for path, value in system.switch.items()})
+    supervised = with_overrides(base, {**common, "train.learning_rate": str(recipe.learning_rate)})
+    dagger = with_overrides(base, {**common, "train.learning_rate": str(recipe.dagger_learning_rate)})
+    return supervised, dagger
+
+
+def environments(recipe: Recipe) -> dict[str, list[int]]:
+    from gsmn.world.spec import split_env_ids
+
+    train = split_env_ids("train", recipe.train_envs + recipe.fresh_envs)
+    fresh = train[recipe.train_envs:]
+    return {"train": train[:recipe.train_envs], "dev": split_env_ids("dev", recipe.dev_envs),
+            "seed": fresh[:recipe.dataset_size], "fresh": fresh, "eval": split_env_ids("dev", recipe.eval_envs)}
+
+
+# -- stage copies ---------------------------------------------------------------------------------------------
+def read_stage(ship: Path) -> dict | None:
+    try:
+        return json.loads((ship / "stage.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _state_epoch(run_root: Path) -> int:
+    """Finished epochs (iterations) of a run folder's saved state; -1 without one."""
+    for name in ("state", "state.old"):
+        try:
+            return int(json.loads((run_root / name / "state.json").read_text())["epoch"])
+        except (OSError, ValueError, KeyError):
+            continue
+    return -1
+
+
+def publish(run_root: Path, ship: Path, stage: dict) -> None:
+    """Replace the copy at `ship` with the run's checkpoint and its small state files (atomically: a kill leaves
+    the old copy or the new one)."""
+    tmp = ship.parent / f".{ship.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(run_root / "checkpoint", tmp)
+    (tmp / "run").mkdir()
+    for name, source in (("config.json", run_root / "config.json"), ("log.jsonl", run_root / "log.jsonl"),
+                         ("state.json", run_root / "state" / "state.json")):
+        shutil.copy2(source, tmp / "run" / name)
+    if (ship / "evaluation.json").is_file():
+        shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
+    (tmp / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
+    old = ship.parent / f".{ship.name}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if ship.exists():
+        ship.rename(old)
+    tmp.rename(ship)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def restore(ship: Path, run_root: Path) -> None:
+    """Rebuild a run folder from a stage copy: its config, log, checkpoint and resumable state."""
+    shutil.rmtree(run_root, ignore_errors=True)
+    (run_root / "state").mkdir(parents=True)
+    shutil.copy2(ship / "run" / "config.json", run_root / "config.json")
+    shutil.copy2(ship / "run" / "log.jsonl", run_root / "log.jsonl")
+    shutil.copy2(ship / "run" / "state.json", run_root / "state" / "state.json")
+    shutil.copy2(ship / "weights.safetensors", run_root / "state" / "weights.safetensors")
+    shutil.copy2(ship / "optimizer.pt", run_root / "state" / "optimizer.pt")
+    checkpoint = run_root / "checkpoint"
+    shutil.copytree(ship, checkpoint, ignore=shutil.ignore_patterns("run", "stage.json", "evaluation.json"))
+
+
+def git_commit(paths: list[Path], message: str, log=print, tries: int = 6) -> bool:
+    """Commit `paths` (and only them) to the repository they are in; retried while another git command holds the
+    index. Returns whether it committed."""
+    top = subprocess.run(["git", "-C", str(paths[0].parent), "rev-parse", "--show-toplevel"], capture_output=True,
+                         text=True)
+    if top.returncode != 0:
+        log(f"not committed: {paths[0]} is not in a git repository")
+        return False
+    cwd, rel = top.stdout.strip(), [os.path.relpath(p, top.stdout.strip()) for p in paths]
+    error = ""
+    for attempt in range(tries):
+        add = subprocess.run(["git", "add", "-A", "--", *rel], cwd=cwd, capture_output=True, text=True)
+        if add.returncode == 0:
+            staged = subprocess.run(["git", "diff", "--cached", "--quiet", "--", *rel], cwd=cwd)
+            if staged.returncode == 0:
+                return True  # nothing changed
+            done = subprocess.run(["git", "commit", "-q", "-m", message, "--", *rel], cwd=cwd, capture_output=True,
+                                  text=True)
+            if done.returncode == 0:
+                return True
+            error = done.stderr.strip()
+        else:
+            error = add.stderr.strip()
+        time.sleep(5 * (attempt + 1))  # e.g. another command's index.lock, or a merge in progress
+    log(f"not committed after {tries} tries ({error}); the copy is in {paths[0]}: commit it by hand")
+    return False
+
+
+# -- one system -----------------------------------------------------------------------------------------------
+@dataclass
+class Layout:
+    out: Path  # run folders and data (may be lost)
+    ship: Path  # stage copies and evaluations (committed)
+
+    @property
+    def data(self) -> Path:
+        return self.out / "data"
+
+    def run(self, system: System, stage: str) -> Path:
+        return self.out / system.name / stage
+
+    def shipped(self, system: System) -> Path:
+        return self.ship / system.name
+
+
+def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers: int = 2, log=print) -> None:
+    """Expert episodes for the stores named in `which` ("train", "dev", "seed"); existing episodes are kept."""
+    from gsmn.training.collect import collect_expert
+    from gsmn.training.store import EpisodeStore
+
+    envs = environments(recipe)
+    config = preset(recipe.preset)
+    for name in which:
+        store = EpisodeStore(layout.data / f"expert_{name}")
+        if len(store) < len(envs[name]):
+            log(f"collecting expert episodes: {name}, {len(envs[name]) - len(store)} of {len(envs[name])} to go")
+            collect_expert(store, envs[name], config, workers=workers)
+
+
+def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
+    """The expert stores the remaining stages of `systems` read."""
+    needed = set()
+    for system in systems:
+        stage = read_stage(layout.shipped(system)) or {}
+        if stage.get("evaluated"):
+            continue
+        needed.add("dev")
+        in_dagger = stage.get("stage") == "dagger" or _state_epoch(layout.run(system, "dagger")) >= 0
+        if not in_dagger:
+            needed.add("seed")
+            if stage.get("stage") != "supervised" or stage.get("epoch", 0) < recipe.epochs:
+                needed.add("train")
+    return tuple(n for n in ("train", "dev", "seed") if n in needed)
+
+
+def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2, commit: bool = False,
+               log=print, on_progress=None, stop_after=None) -> dict | None:
+    """Train and evaluate one system, resuming from its run folders or its stage copy; returns its evaluation, or
+    None when `stop_after(stage, state)` ("supervised" or "dagger", the run's TrainState after a saved epoch) ended
+    it early (the stage copy made by then is kept)."""
+    from gsmn.training.dagger import train_dagger
+    from gsmn.training.store import EpisodeStore
+    from gsmn.training.supervised import train_supervised
+
+    ship = layout.shipped(system)
+    sup_config, dagger_config = system_configs(system, recipe, threads)
+    sup_run, dagger_run = layout.run(system, "supervised"), layout.run(system, "dagger")
+    stage = read_stage(ship) or {}
+
+    def keep(run_root: Path, name: str, epoch: int, total: int) -> None:
+        publish(run_root, ship, {"system": system.name, "label": system.label, "stage": name, "epoch": epoch,
+                                 "epochs": total, "recipe": recipe.to_dict(),
+                                 "evaluated": (ship / "evaluation.json").is_file()})
+        where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
+        log(f"{system.name}: kept {where} in {ship}")
+        if commit:
+            git_commit([ship], f"table2: {system.label}, {where} (stage copy for resuming)", log)
+
+    # 1. supervised learning
+    if stage.get("stage") == "supervised" and _state_epoch(sup_run) < stage["epoch"]:
+        log(f"{system.name}: restoring supervised epoch {stage['epoch']} from {ship}")
+        restore(ship, sup_run)
+    in_dagger = stage.get("stage") == "dagger" or _state_epoch(dagger_run) >= 0
+    if not in_dagger:
+        def on_epoch(state) -> None:
+            if state.epoch % recipe.publish_every_epochs == 0 or state.epoch == recipe.epochs:
+                keep(sup_run, "supervised", state.epoch, recipe.epochs)
+
+        train_supervised(sup_run, system.kind, sup_config, EpisodeStore(layout.data / "expert_train"),
+                         EpisodeStore(layout.data / "expert_dev"), log=log, on_progress=on_progress,
+                         on_epoch=on_epoch, stop_after=_at_epoch_end(stop_after, "supervised"))
+        if _state_epoch(sup_run) < recipe.epochs:
+            return None
+
+    # 2. DAggerFM
+    if stage.get("stage") == "dagger" and _state_epoch(dagger_run) < stage["epoch"]:
+        log(f"{system.name}: restoring DAggerFM iteration {stage['epoch']} from {ship}")
+        restore(ship, dagger_run)
+    # a resumed run reads its weights and Adam from its own state; `init` then only names the architecture, so the
+    # stage copy serves when the supervised run folder is gone
+    init = sup_run / "checkpoint" if (sup_run / "checkpoint" / "meta.json").is_file() else ship
+
+    def on_iteration(state) -> None:
+        if state.epoch % recipe.publish_every_iterations == 0 or state.epoch == recipe.iterations:
+            keep(dagger_run, "dagger", state.epoch, recipe.iterations)
+
+    train_dagger(dagger_run, init, dagger_config, EpisodeStore(layout.data / "expert_seed"),
+                 EpisodeStore(layout.data / "expert_dev"), env_ids=environments(recipe)["fresh"], log=log,
+                 on_progress=on_progress, on_iteration=on_iteration, stop_after=_at_epoch_end(stop_after, "dagger"))
+    if _state_epoch(dagger_run) < recipe.iterations:
+        return None
+
+    # 3. evaluation on dev
+    evaluation = ship / "evaluation.json"
+    if not evaluation.is_file():
+        results = evaluate_system(system, layout, recipe, threads, log)
+        write_json_atomic(evaluation, results)
+        stage = {**(read_stage(ship) or {}), "evaluated": True}
+        (ship / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
+        s = results["summary"]
+        log(f"{system.name}: {s['success']:.1f} % success on {s['count']} dev environments")
+        if commit:
+            git_commit([ship], f"table2: {system.label}, evaluated on {s['count']} dev environments", log)
+    return json.loads(evaluation.read_text())
+
+
+def _at_epoch_end(stop_after, stage: str):
+    """The training loops' `stop_after` (asked after every saved state), asked of `stop_after` at epoch ends only."""
+    if stop_after is None:
+        return None
+    return lambda state: state.batch == 0 and stop_after(stage, state)
+
+
+def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print) -> dict:
+    """Fly the finished system on the dev environments with `gsmn eval` (resumable: its partial file), record the
+    maps, attribute each failure; a compact result."""
+    from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
+    from gsmn.model.checkpoint import load_checkpoint
+    from gsmn.task.metrics import summarize
+
+    ship = layout.shipped(system)
+    folder = layout.out / system.name
+    full, record = folder / "evaluation_full.json", folder / "record"
+    ids = environments(recipe)["eval"]
+    if not full.is_file():
+        command = [sys.executable, "-m", "gsmn.cli", "eval", "--system", system.kind, "--checkpoint", str(ship),
+                   "--env-ids", ",".join(map(str, ids)), "--json", str(full), "--record", str(record),
+                   "--workers", "1", "--threads", str(threads), "--preset", recipe.preset]
+        if Path(str(full) + ".partial.jsonl").is_file():
+            command.append("--resume")
+        log(f"{system.name}: flying {len(ids)} dev environments")
+        subprocess.run(command, check=True)
+    results = json.loads(full.read_text())
+    model, *_ = load_checkpoint(ship)
+    heads, config = Heads.of(model), RunConfig.from_dict(results["config"])
+    episodes = []
+    for ep in results["episodes"]:
+        stage = None
+        if not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
+            stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
+        episodes.append({k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage})
+    return {"system": system.name, "label": system.label, "recipe": recipe.to_dict(), "env_ids": ids,
+            "summary": summarize(results["episodes"], config.task.success_radius).to_dict(), "episodes": episodes}
+
+
+PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabilities")  # not kept: the bulk
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    tmp.replace(path)
+
+
+# -- the programme ----------------------------------------------------------------------------------------------
+def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: list[System], parallel: int = 2,
+                  commit: bool = False, log=print) -> int:
+    """Every system's pipeline, `parallel` at a time (one thread each when side by side, else two), each in its own
+    process logging to OUT/<name>/log.txt, with a progress bar per running system. Returns a shell status."""
+    from tqdm import tqdm
+
+    collect_data(layout, recipe, data_needed(layout, recipe, systems), workers=2, log=log)
+    threads = 1 if parallel > 1 else 2
+    pending, running, failed = list(systems), {}, []
+    bars: dict[str, Any] = {}
+    gate_closed = False
+    try:
+        while pending or running:
+            while pending and len(running) < parallel and not gate_closed:
+                system = pending.pop(0)
+                (layout.out / system.name).mkdir(parents=True, exist_ok=True)
+                logfile = (layout.out / system.name / "log.txt").open("a")
+                command = [sys.executable, "-m", "gsmn.cli", "experiment", "table2", "--out", str(layout.out),
+                           "--ship", str(layout.ship), "--recipe", recipe_name, "--system", system.name,
+                           "--threads", str(threads)] + (["--git-commit"] if commit else [])
+                running[system.name] = (subprocess.Popen(command, stdout=logfile, stderr=subprocess.STDOUT), logfile)
+                bars[system.name] = tqdm(total=1, desc=system.name, position=len(bars), file=sys.stderr,
+                                         dynamic_ncols=True, leave=True)
+            for name, (process, logfile) in list(running.items()):
+                if process.poll() is None:
+                    continue
+                logfile.close()
+                del running[name]
+                if process.returncode != 0:
+                    failed.append(name)
+                    tqdm.write(f"{name}: stopped with status {process.returncode}; see {layout.out / name / 'log.txt'}")
+                if name == SYSTEMS[0].name and name not in failed:
+                    success = json.loads((layout.shipped(BY_NAME[name]) / "evaluation.json").read_text())
+                    if success["summary"]["success"] < recipe.control_gate:
+                        gate_closed = True
+                        tqdm.write(f"the control flies {success['summary']['success']:.1f} % on dev, below the "
+                                   f"recipe's gate of {recipe.control_gate:.0f} %: the ablations' drops would be "
+                                   "noise, so no further system starts (docs/training.md)")
+            for name, bar in bars.items():
+                desc, done, total = describe(layout, BY_NAME[name], recipe)
+                bar.set_description_str(f"{name}: {desc}", refresh=False)
+                bar.total, bar.n = max(total, 1), done
+                bar.refresh()
+            time.sleep(2)
+    finally:
+        for process, _ in running.values():  # stopped (Ctrl-C, SIGTERM): the children save and stop too
+            process.terminate()
+        for process, logfile in running.values():
+            process.wait()
+            logfile.close()
+        for bar in bars.values():
+            bar.close()
+    if gate_closed or failed:
+        return 1
+    print(table_markdown(layout.ship))
+    return 0
+
+
+def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, int]:
+    """Where a system's pipeline stands, for its progress bar: (what, done, total)."""
+    folder = layout.out / system.name
+    partial = folder / "evaluation_full.json.partial.jsonl"
+    if (layout.shipped(system) / "evaluation.json").is_file():
+        return "evaluated", 1, 1
+    if partial.is_file() or (folder / "evaluation_full.json").is_file():
+        done = max(0, len(partial.read_text().splitlines()) - 1) if partial.is_file() else recipe.eval_envs
+        return "evaluating on dev", done, recipe.eval_envs
+    for stage in ("dagger", "supervised"):
+        try:
+            p = json.loads((folder / stage / "progress.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if "iteration" in p:
+            where = f"DAggerFM iteration {p['iteration']}/{p['iterations']} {p.get('phase', '')}"
+        else:
+            where = f"supervised epoch {p.get('epoch')}/{p.get('epochs')} {p.get('phase', '')}"
+        if p.get("phase") == "collect":
+            return where, int(p.get("done", 0)), int(p.get("rollouts", 1))
+        return where, int(p.get("batch", 0)), int(p.get("batches", 1))
+    return "starting", 0, 1
+
+
+# -- the table ------------------------------------------------------------------------------------------------
+PAPER = {  # Table 2 of the paper (development results): success, landmark success, mean and median distance
+    "gsmn": (79.20, 86.00, 2.98, 1.21), "no-plan": (64.40, 82.00, 3.61, 1.75), "no-ground": (5.73, 17.73, 10.69, 10.64),
+    "no-lang": (41.20, 57.20, 6.62, 3.37), "no-percept": (50.00, 63.73, 5.89, 2.55),
+    "pose-noise": (74.40, 85.33, 3.01, 1.41),
+}
+
+
+def sign_test(fixed: int, broken: int) -> float:
+    """Two-sided exact sign test of `fixed` against `broken` paired outcomes."""
+    from math import comb
+
+    n = fixed + broken
+    if n == 0:
+        return 1.0
+    tail = sum(comb(n, k) for k in range(min(fixed, broken) + 1)) / 2**n
+    return min(1.0, 2 * tail)
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson interval of a binomial proportion, in percent."""
+    if n == 0:
+        return float("nan"), float("nan")
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5 / (1 + z * z / n)
+    return 100 * (centre - half), 100 * (centre + half)
+
+
+def table_markdown(ship: Path) -> str:
+    """Table 2 from the kept evaluations: ours beside the paper's, each ablation's drop from the control with a
+    paired sign test over the same environments, and the failures' attribution counts."""
+    from gsmn.attribution import STAGES
+
+    found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())
+             for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+    lines = ["| system | success % (95 % interval) | landmark % | mean dist (m) | median dist (m) | paper: success, "
+             "landmark, mean, median | drop from control (fixed / broken, sign test p) | failures by stage ("
+             + ", ".join(STAGES) + ") |", "|---|---|---|---|---|---|---|---|"]
+    control = found.get(SYSTEMS[0].name)
+    for system in SYSTEMS:
+        paper = " / ".join(f"{v:.2f}" for v in PAPER[system.name])
+        result = found.get(system.name)
+        if result is None:
+            lines.append(f"| {system.label} | not yet | | | | {paper} | | |")
+            continue
+        s, eps = result["summary"], result["episodes"]
+        low, high = wilson(sum(e["success"] for e in eps), len(eps))
+        drop = ""
+        if control is not None and system.name != SYSTEMS[0].name:
+            by_env = {e["env_id"]: e["success"] for e in control["episodes"]}
+            paired = [(by_env[e["env_id"]], e["success"]) for e in eps if e["env_id"] in by_env]
+            fixed = sum(a and not c for c, a in paired)
+            broken = sum(c and not a for c, a in paired)
+            drop = (f"{control['summary']['success'] - s['success']:+.1f} ({fixed} / {broken}, "
+                    f"p {sign_test(fixed, broken):.2g})")
+        stages = ", ".join(str(sum(e.get("stage") == stage for e in eps)) for stage in STAGES)
+        lines.append(f"| {system.label} | {s['success']:.1f} ({low:.1f}-{high:.1f}) | {s['landmark_success']:.1f} | "
+                     f"{s['mean_distance']:.2f} | {s['median_distance']:.2f} | {paper} | {drop} | {stages} |")
+    return "\n".join(lines)
+
+
+# -- command line -----------------------------------------------------------------------------------------------
+def add_parser(sub) -> None:
+    import argparse
+
+    t = sub.add_parser("table2", help="train and evaluate GSMN, its four ablations and GSMN + pose noise with one "
+                                      "recipe (the paper's Table 2); resumes wherever it stopped")
+    t.add_argument("--out", default="runs/table2", help="run folders and expert data (may be lost; rebuilt)")
+    t.add_argument("--ship", default=str(DEFAULT_SHIP),
+                   help="where each system's latest stage and its evaluation are kept (default: checkpoints/table2)")
+    t.add_argument("--systems", default=",".join(s.name for s in SYSTEMS),
+                   help="which systems, in order (default: all: %(default)s)")
+    t.add_argument("--parallel", type=int, default=2,
+                   help="systems trained side by side, one thread each (1: one at a time with two threads)")
+    t.add_argument("--recipe", choices=sorted(RECIPES), default="paper", help="the budget (tiny: seconds, for tests)")
+    t.add_argument("--git-commit", action="store_true",
+                   help="commit each system's stage copy as soon as it is written (so a new machine resumes it)")
+    t.add_argument("--table", action="store_true", help="print Table 2 from the kept evaluations and exit")
+    t.add_argument("--system", help=argparse.SUPPRESS)  # one system in this process: what the programme runs
+    t.add_argument("--threads", type=int, default=2, help=argparse.SUPPRESS)
+    t.set_defaults(func=cmd_table2)
+
+
+def cmd_table2(args) -> int:
+    layout = Layout(Path(args.out), Path(args.ship))
+    recipe = RECIPES[args.recipe]
+    if args.table:
+        print(table_markdown(layout.ship))
+        return 0
+    if args.system:
+        from gsmn.model.runtime import keep_freed_memory
+
+        keep_freed_memory()
+        run_system(BY_NAME[args.system], layout, recipe, args.threads, args.git_commit,
+                   log=lambda line: print(line, flush=True))
+        return 0
+    names = [n.strip() for n in args.systems.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BY_NAME]
+    if unknown:
+        raise ValueError(f"unknown system(s) {unknown}; choose from {', '.join(BY_NAME)}")
+    if args.parallel < 1:
+        raise ValueError("--parallel must be at least 1")
+    return run_programme(layout, recipe, args.recipe, [BY_NAME[n] for n in names], args.parallel, args.git_commit)

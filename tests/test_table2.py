@@ -1,0 +1,123 @@
+"""The Table 2 programme (gsmn/experiments/table2.py): six systems that differ only in their switch, and a programme
+that survives losing its machine (run folders and data gone) by resuming from its committed stage copies."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+from gsmn.config import LossConfig
+from gsmn.experiments import table2
+from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_data, data_needed, run_system
+from gsmn.model.losses import objectives_for
+
+
+def _leaves(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in d.items():
+        if isinstance(value, dict):
+            out.update(_leaves(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def test_the_six_systems_differ_from_the_control_only_in_their_switch():
+    recipe = RECIPES["paper"]
+    control = [_leaves(c.to_dict()) for c in table2.system_configs(SYSTEMS[0], recipe)]
+    assert SYSTEMS[0].switch == {} and SYSTEMS[0].kind == "gsmn"
+    assert [s.name for s in SYSTEMS] == ["gsmn", "no-plan", "no-ground", "no-lang", "no-percept", "pose-noise"]
+    for system in SYSTEMS[1:]:
+        for stage, (ours, theirs) in enumerate(zip(control, table2.system_configs(system, recipe), strict=True)):
+            theirs = _leaves(theirs.to_dict())
+            differ = {k for k in ours if ours[k] != theirs[k]}
+            assert differ == set(system.switch), (system.name, stage, differ)
+            assert all(theirs[k] == v for k, v in system.switch.items())
+    # the one switch each: off for an objective, the original code's 0.5 m for the pose noise
+    assert {s.name: s.switch for s in SYSTEMS[1:]} == {
+        "no-plan": {"loss.goal": False}, "no-ground": {"loss.grounding": False}, "no-lang": {"loss.language": False},
+        "no-percept": {"loss.perception": False}, "pose-noise": {"model.pose_noise_std": 0.5}}
+    # the -J_plan system's kind trains exactly the loss its config says: the kind adds nothing of its own
+    no_plan = table2.BY_NAME["no-plan"]
+    loss = table2.system_configs(no_plan, recipe)[0].loss
+    assert objectives_for(no_plan.kind, loss) == loss == dataclasses.replace(LossConfig(), goal=False)
+    assert [s.kind for s in SYSTEMS if s.name != "no-plan"] == ["gsmn"] * 5
+    # the recipe, shared by all: supervised at the paper's learning rate, DAggerFM at a lower one
+    sup, dagger = control
+    assert sup["train.epochs"] == recipe.epochs and sup["train.learning_rate"] == 1e-3
+    assert dagger["train.learning_rate"] == recipe.dagger_learning_rate
+    assert {k for k in sup if sup[k] != dagger[k]} == {"train.learning_rate"}
+
+
+def test_the_paired_figures_of_the_table():
+    assert table2.sign_test(0, 0) == 1.0
+    assert abs(table2.sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
+    assert table2.sign_test(0, 10) < 0.002 and table2.sign_test(5, 5) == 1.0
+    low, high = table2.wilson(240, 300)
+    assert 75.0 < low < 75.2 and 84.0 < high < 84.2  # p 0.8 at n 300
+
+
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout
+
+
+def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine(tmp_path):
+    """Supervised learning and one DAggerFM iteration, each stage copied and committed; then the machine is lost
+    (run folders and expert data gone): a new start restores the DAggerFM run from the commit, rebuilds only the dev
+    data, refills the DAggerFM dataset from the current mixture, finishes, and keeps a compact evaluation."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    _git(repo, "init", "-q")
+    _git(repo, "config", "user.email", "t@example.org")
+    _git(repo, "config", "user.name", "test")
+    _git(repo, "commit", "-q", "--allow-empty", "-m", "start")
+    layout = Layout(tmp_path / "runs", repo / "checkpoints" / "table2")
+    recipe = dataclasses.replace(RECIPES["tiny"], eval_envs=1)
+    control: System = SYSTEMS[0]
+    ship = layout.shipped(control)
+
+    collect_data(layout, recipe, data_needed(layout, recipe, [control]), workers=1, log=lambda s: None)
+    lines: list[str] = []
+    stopped = run_system(control, layout, recipe, threads=1, commit=True, log=lines.append,
+                         stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
+    assert stopped is None
+    stage = json.loads((ship / "stage.json").read_text())
+    assert (stage["stage"], stage["epoch"], stage["epochs"], stage["evaluated"]) == ("dagger", 1, 2, False)
+    history = _git(repo, "log", "--format=%s").splitlines()
+    assert history[:3] == ["table2: GSMN, dagger iteration 1 of 2 (stage copy for resuming)",
+                           "table2: GSMN, supervised epoch 2 of 2 (stage copy for resuming)",
+                           "table2: GSMN, supervised epoch 1 of 2 (stage copy for resuming)"]
+    # one copy in the tree, replaced at each stage: a checkpoint with its Adam state and the run's small files
+    tracked = sorted(_git(repo, "ls-files", "checkpoints").split())
+    assert tracked == sorted(f"checkpoints/table2/gsmn/{name}" for name in (
+        "config.json", "meta.json", "optimizer.pt", "vocabulary.json", "weights.safetensors", "stage.json",
+        "run/config.json", "run/log.jsonl", "run/state.json"))
+    assert _git(repo, "status", "--porcelain") == ""
+
+    shutil.rmtree(layout.out)  # the machine is lost: runs/ and data/ are gone
+    assert data_needed(layout, recipe, [control]) == ("dev",), "the restored run needs only its validation data"
+    collect_data(layout, recipe, ("dev",), workers=1, log=lambda s: None)
+    lines.clear()
+    result = run_system(control, layout, recipe, threads=1, commit=True, log=lines.append)
+    assert "gsmn: restoring DAggerFM iteration 1 from " + str(ship) in lines
+    assert any("refilling it with 2 rollouts of the current mixture policy" in line for line in lines)
+    log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in log] == [1, 2] and log[1]["refilled"] == 2
+    assert not (layout.run(control, "supervised")).exists(), "the supervised stage is not redone"
+
+    # the compact evaluation: figures per episode, no trajectories; committed with the last stage
+    assert result == json.loads((ship / "evaluation.json").read_text())
+    assert result["env_ids"] == table2.environments(recipe)["eval"] and len(result["episodes"]) == 1
+    episode = result["episodes"][0]
+    assert {"env_id", "success", "goal_distance", "stage", "final_x"} <= set(episode) and "trajectory" not in episode
+    assert (episode["stage"] is None) == episode["success"]
+    assert json.loads((ship / "stage.json").read_text())["evaluated"] is True
+    assert _git(repo, "log", "-1", "--format=%s").strip() == "table2: GSMN, evaluated on 1 dev environments"
+    assert _git(repo, "status", "--porcelain") == ""
+    table = table2.table_markdown(layout.ship)
+    assert "| GSMN | " in table and "| GSMN without J_ground | not yet |" in table
+    # a start after the end does nothing more
+    assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
