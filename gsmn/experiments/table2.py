@@ -221,11 +221,15 @@ def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers
 
     envs = environments(recipe)
     config = preset(recipe.preset)
+    from tqdm import tqdm
+
     for name in which:
         store = EpisodeStore(layout.data / f"expert_{name}")
         if len(store) < len(envs[name]):
             log(f"collecting expert episodes: {name}, {len(envs[name]) - len(store)} of {len(envs[name])} to go")
-            collect_expert(store, envs[name], config, workers=workers)
+            with tqdm(total=len(envs[name]), initial=len(store), desc=f"expert {name}", unit="episode",
+                      file=sys.stderr, dynamic_ncols=True) as bar:
+                collect_expert(store, envs[name], config, workers=workers, on_episode=lambda *_: bar.update(1))
 
 
 def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
