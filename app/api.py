@@ -145,6 +145,7 @@ class CheckpointModel(BaseModel):
     default: bool
     error: str | None
     metrics: dict
+    label: str = Field(description="a readable name, e.g. 'GSMN without J_ground (Table 2: 52.0 % on 300 dev)'")
 
 
 class Health(BaseModel):

@@ -126,6 +126,7 @@ class CheckpointInfo:
     default: bool
     error: str | None = None
     metrics: dict = field(default_factory=dict)
+    label: str = ""  # readable: "GSMN without J_ground (Table 2: 52.0 % on 300 dev)"; the name where none is known
 
 
 class RunnerListener:

@@ -233,7 +233,7 @@ class JobsView(RunnerListener):
     # -- evaluations -------------------------------------------------------------------------------------------
     def _evaluate(self) -> None:
         choice = self.eval_checkpoint.value
-        system, checkpoint = ("oracle", None) if choice == EXPERT_CHOICE else (None, choice.removeprefix("Model: "))
+        system, checkpoint = ("oracle", None) if choice == EXPERT_CHOICE else (None, self.viewer.checkpoint_of(choice))
         try:
             ids = parse_env_ids(self.eval_ids.value.strip()) if self.eval_ids.value.strip() else None
             e = self.jobs.start_evaluation(checkpoint, system, None if ids else self.eval_split.value,
@@ -368,7 +368,7 @@ class JobsView(RunnerListener):
     # -- runs --------------------------------------------------------------------------------------------------
     def _launch(self) -> None:
         choice = self.run_checkpoint.value
-        checkpoint = choice.removeprefix("Model: ") if choice.startswith("Model: ") else None
+        checkpoint = self.viewer.checkpoint_of(choice)
         env_ids = None
         if self.run_envs.value != ENV_TRAIN:
             env_ids = list(self._selected_failures)

@@ -109,6 +109,15 @@ def _straight_task(world: WorldSpec, instruction: Instruction, spacing: float) -
 
 
 # -- the runner -----------------------------------------------------------------------------------------------
+def checkpoint_label(name: str, path: Path) -> str:
+    """A readable name: a Table 2 system's label and where its programme stands (`gsmn experiment table2`), else
+    the checkpoint's name."""
+    from gsmn.experiments.table2 import describe_stage, read_stage
+
+    stage = read_stage(path)
+    return describe_stage(stage, path) if stage else name
+
+
 class Runner:
     """Owns Env, renderer and policies on one thread. `checkpoint`: a folder, or a name under
     `checkpoints_root`; `require_checkpoint` makes a missing one an error instead of a message."""
@@ -175,6 +184,9 @@ class Runner:
         if self.checkpoints_root.is_dir():
             for meta in sorted(self.checkpoints_root.glob("*/meta.json")):
                 found[meta.parent.name] = meta.parent
+            for meta in sorted(self.checkpoints_root.glob("*/*/meta.json")):  # a group, e.g. table2/no-ground
+                if not (meta.parent.parent / "meta.json").is_file():
+                    found[f"{meta.parent.parent.name}/{meta.parent.name}"] = meta.parent
         if self.default_ref is not None and self.default_ref not in found:
             path = self._path_of(self.default_ref)
             if path.is_dir():
@@ -196,7 +208,7 @@ class Runner:
                 meta, error = {}, f"meta.json unreadable: {e}"
             out.append(CheckpointInfo(name=name, path=str(path), kind=meta.get("kind"), created=meta.get("created"),
                                       loaded=key in self.models, default=key == default_key, error=error,
-                                      metrics=meta.get("metrics") or {}))
+                                      metrics=meta.get("metrics") or {}, label=checkpoint_label(name, path)))
         return out
 
     # -- the thread -------------------------------------------------------------------------------------------
@@ -272,6 +284,8 @@ class Runner:
             return extra[ref]
         candidate = self.checkpoints_root / ref
         if "/" not in ref and (candidate.is_dir() or not (Path(ref) / "meta.json").is_file()):
+            return candidate
+        if (candidate / "meta.json").is_file() and not (Path(ref) / "meta.json").is_file():  # e.g. table2/no-plan
             return candidate
         return Path(ref)
 

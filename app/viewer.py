@@ -91,6 +91,7 @@ class Viewer(RunnerListener):
     def __init__(self, server: viser.ViserServer, runner: Runner, env_id: int = 70):
         self.server = server
         self.runner = runner
+        self._checkpoint_of_choice: dict[str, str] = {}  # a policy menu entry ("Model: <label>") -> checkpoint name
         cam = runner.config.camera
         from gsmn.world.assets import load_catalogue
 
@@ -237,7 +238,8 @@ class Viewer(RunnerListener):
         choices = []
         for info in self.runner.checkpoint_list():
             if info.kind in ("gsmn", "gsmn-no-plan") and (info.loaded or info.error is None):
-                label = f"Model: {info.name}"
+                label = f"Model: {info.label or info.name}"
+                self._checkpoint_of_choice[label] = info.name
                 if info.default:
                     choices.insert(0, label)
                 else:
@@ -248,8 +250,14 @@ class Viewer(RunnerListener):
         choice = self.policy.value
         if choice == EXPERT_CHOICE:
             return "expert", None
-        name = choice.removeprefix("Model: ")
-        return ("mirror" if self.mirror.value else "model"), name
+        return ("mirror" if self.mirror.value else "model"), self.checkpoint_of(choice)
+
+    def checkpoint_of(self, choice: str) -> str | None:
+        """The checkpoint name of a policy menu entry ("Model: GSMN without J_ground (...)" -> "table2/no-ground");
+        None for the expert."""
+        if not choice.startswith("Model: "):
+            return None
+        return self._checkpoint_of_choice.get(choice, choice.removeprefix("Model: "))
 
     # -- callbacks (viser's thread pool: post commands, enqueue events) -----------------------------------------
     def _on_env_button(self, event: viser.GuiEvent) -> None:

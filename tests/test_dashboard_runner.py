@@ -4,6 +4,7 @@ what was wrong without stopping the runner."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -213,3 +214,31 @@ def test_without_a_checkpoint_the_expert_still_flies(tmp_path):
         r.close()
     with pytest.raises(RunnerError, match="no checkpoint at"):
         Runner(preset("tiny"), checkpoint="gsmn", require_checkpoint=True, checkpoints_root=tmp_path).start()
+
+
+def test_table2_checkpoints_are_offered_under_readable_names_and_fly(tmp_path):
+    """`gsmn experiment table2` keeps each system in checkpoints/table2/<name>/ with its stage: the runner lists
+    them one folder down, by the system's label and where its programme stands, and flies them by that name."""
+    root = tmp_path / "checkpoints"
+    make_untrained_checkpoint(root / "gsmn")
+    for name, label, stage in (("no-ground", "GSMN without J_ground", {"stage": "supervised", "epoch": 4}),
+                               ("no-plan", "GSMN without J_plan", {"stage": "dagger", "epoch": 15})):
+        folder = make_untrained_checkpoint(root / "table2" / name)
+        (folder / "stage.json").write_text(json.dumps({"system": name, "label": label, "epochs": 16 if
+                                                       stage["stage"] == "supervised" else 15, **stage}))
+    (root / "table2" / "no-plan" / "evaluation.json").write_text(json.dumps({"summary": {"success": 52.0,
+                                                                                         "count": 300}}))
+    (root / "table2" / "no-plan" / "stage.json").write_text(json.dumps(
+        {**json.loads((root / "table2" / "no-plan" / "stage.json").read_text()), "evaluated": True}))
+    r = Runner(preset("tiny"), checkpoint="gsmn", checkpoints_root=root).start()
+    try:
+        labels = {c.name: c.label for c in r.checkpoint_list()}
+        assert labels == {"gsmn": "gsmn",
+                          "table2/no-ground": "GSMN without J_ground (Table 2, in training: supervised epoch 4 of 16)",
+                          "table2/no-plan": "GSMN without J_plan (Table 2: 52.0 % on 300 dev)"}
+        episode = r.call(StartEpisode(70, None, "model", "table2/no-ground", paused=True))
+        wait_for(lambda: len(episode.steps) == 1, what="the table2 model's first step")
+        assert episode.status == PAUSED and episode.checkpoint == (root / "table2" / "no-ground").as_posix()
+        assert episode.steps[0].maps is not None, "its maps are drawn"
+    finally:
+        r.close()

@@ -125,6 +125,23 @@ def read_stage(ship: Path) -> dict | None:
         return None
 
 
+def describe_stage(stage: dict, ship: Path) -> str:
+    """A stage copy as a person reads it: "GSMN without J_ground (Table 2: 52.0 % on 300 dev)", or where its
+    training stands."""
+    label = stage.get("label") or stage.get("system", ship.name)
+    if stage.get("evaluated"):
+        try:
+            summary = json.loads((ship / "evaluation.json").read_text())["summary"]
+            return f"{label} (Table 2: {summary['success']:.1f} % on {summary['count']} dev)"
+        except (OSError, ValueError, KeyError):
+            pass
+    if stage.get("stage") == "dagger" and stage.get("epoch") == stage.get("epochs"):
+        return f"{label} (Table 2, trained; not yet evaluated)"
+    what = "epoch" if stage.get("stage") == "supervised" else "iteration"
+    name = "supervised" if stage.get("stage") == "supervised" else "DAggerFM"
+    return f"{label} (Table 2, in training: {name} {what} {stage.get('epoch')} of {stage.get('epochs')})"
+
+
 def _state_epoch(run_root: Path) -> int:
     """Finished epochs (iterations) of a run folder's saved state; -1 without one."""
     for name in ("state", "state.old"):
