@@ -125,7 +125,7 @@ def memory_from_fpv(fpv: GSFPV, seed: int = 0) -> GSFPV:
     Every weight the two share is copied; the LSTM keeps a fresh initialisation (seeded); the perceptron's weights
     on the LSTM's outputs are zero, so the memory has no say until training gives it one. The perceptron's input
     is [maps; sentence] in GS-FPV and [maps; sentence; memory] in GS-FPV-MEM, its output layer's
-    [inputs; hidden] likewise (docs/training.md, "GS-FPV-MEM warm-started from GS-FPV").
+    [inputs; hidden] likewise (docs/training.md, "`checkpoints/gs-fpv-mem`").
     """
     if getattr(fpv, "kind", None) != "gs-fpv":
         raise ValueError(f"memory_from_fpv needs a GS-FPV; this is a {getattr(fpv, 'kind', type(fpv).__name__)!r}")

@@ -17,10 +17,10 @@ Departure, the stop radius: the original stops on progress alone. On the path th
 second-to-last waypoint is at most a spacing, 1.2 m, from the goal). Off it, as in DAgger's learner states,
 progress is the projection onto the path, and a learner flying past a landmark's side while the path curls
 around its rim to the back reaches the stop waypoint's projection 2.5-5 m from the goal, often in the wrong
-quadrant: in the test rollouts of the GSMN shipped on 2026-11-25, 65 of 236 first expert STOPs along the
-learner's path were outside the success region (docs/training.md, "The expert's STOP off the path"). Those
-labels taught the learner to stop short of and beside back-side goals. With the radius, the expert keeps
-flying to the goal (the carrot is the goal near the end) until it is close.
+quadrant: in the test rollouts of an earlier GSMN, 65 of 236 first expert STOPs along the learner's path were
+outside the success region (docs/design.md, "Departure: the expert stops only near the goal"). Those labels
+taught the learner to stop short of and beside back-side goals. With the radius, the expert keeps flying to
+the goal (the carrot is the goal near the end) until it is close.
 
 Progress is monotone non-decreasing and searched only `progress_window` waypoints ahead of its last value,
 so the expert never jumps back (or far forward) across a loop of the path, and it answers from anywhere,
