@@ -308,37 +308,20 @@ def _above(bars: _TrainingBars):
     return log
 
 
-# -- gsmn serve ------------------------------------------------------------------------------------
-def cmd_serve(args: argparse.Namespace) -> int:
-    import time
-
-    from app.server import Dashboard
-
-    config = config_from_args(args)
-    try:
-        dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
-                              api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
-                              max_runs=args.max_runs, max_evaluations=args.max_evaluations)
-    except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
-        print(f"gsmn serve: error: {e}", file=sys.stderr)
-        return 2
-    urls = dashboard.urls
-    print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
-    moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
-    print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
-    print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
-    print(f"data: {dashboard.jobs.describe()}", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        dashboard.close()
-    return 0
-
-
 # -- entry point ------------------------------------------------------------------------------------
+COMMAND_GROUP = "gsmn.commands"
+
+
+def add_installed_commands(sub: argparse._SubParsersAction) -> None:
+    """Subcommands that installed packages declare in the entry-point group `gsmn.commands`, each a
+    `register(subparsers)` that adds its parser. The dashboard's `gsmn serve` comes this way (app.cli), so the
+    library never imports the app."""
+    from importlib.metadata import entry_points
+
+    for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        entry.load()(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsmn", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -417,20 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_dagger)
 
-    p = sub.add_parser("serve", help="serve the dashboard: the browser view (viser) and the HTTP API (FastAPI)")
-    p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
-                   "when it exists; without one the expert flies and the page says so)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind both servers (default: loopback only; "
-                   "neither has authentication)")
-    p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
-    p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
-    p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
-    p.add_argument("--data-dir", default="data/dashboard", help="evaluations, fine-tuning runs and their records "
-                   "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
-    p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
-    p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
-    add_config_arguments(p)
-    p.set_defaults(func=cmd_serve)
+    add_installed_commands(sub)
     return parser
 
 
