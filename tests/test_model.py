@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,8 +41,11 @@ from gsmn.task.expert import Expert
 from gsmn.task.instructions import SIDES, make_instruction
 from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
+from gsmn.world.landmarks import CATALOGUE
 
 TINY = preset("tiny")
+CHECKPOINTS = {p.name: p for p in (Path(__file__).resolve().parents[1] / "checkpoints").iterdir()
+               if (p / "config.json").is_file()}
 SIGMOID = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, filter_activation="sigmoid"))  # original
 VOCABULARY = Vocabulary.default()
 
@@ -433,6 +437,27 @@ def test_a_checkpoint_from_before_filter_activation_loads_with_the_sigmoid(tmp_p
     with torch.inference_mode():
         torch.testing.assert_close(forward_batch(loaded, batch).goal_map_w, forward_batch(model, batch).goal_map_w,
                                    rtol=0, atol=0)
+
+
+def test_the_head_class_counts_are_the_catalogues_and_the_tasks():
+    """ModelConfig carries the class counts so that the model need not import the catalogue; they cannot drift."""
+    assert ModelConfig().landmark_classes == len(CATALOGUE) == 63
+    assert ModelConfig().side_classes == len(SIDES)
+    heads = seeded_model("gsmn").heads
+    assert heads.perception.out_features == heads.language_landmark.out_features == len(CATALOGUE)
+    assert heads.language_side.out_features == len(SIDES)
+
+
+@pytest.mark.parametrize("name", sorted(CHECKPOINTS))
+def test_the_shipped_checkpoints_load_without_the_class_count_fields(name):
+    """checkpoints/*/config.json predate model.landmark_classes and model.side_classes: the defaults fill them."""
+    folder = CHECKPOINTS[name]
+    raw = json.loads((folder / "config.json").read_text())
+    assert "landmark_classes" not in raw["model"] and "side_classes" not in raw["model"]
+    model, config, _, meta = load_checkpoint(folder)
+    assert meta["kind"] == name
+    assert (config.model.landmark_classes, config.model.side_classes) == (len(CATALOGUE), len(SIDES))
+    assert model.heads.perception.out_features == len(CATALOGUE)
 
 
 def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
