@@ -14,7 +14,8 @@ import pytest
 from gsmn.cli import build_parser
 
 COMMANDS = [["world"], ["eval"], ["fit-avg-forward"], ["collect"], ["train", "supervised"], ["train", "dagger"],
-            ["serve"]]
+            ["average"], ["keep-iterations"], ["attribute"], ["analyze", "table1"], ["analyze", "regions"],
+            ["analyze", "stop-threshold"], ["analyze", "compare"], ["analyze", "dagger"], ["serve"]]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=lambda c: " ".join(c))
