@@ -4,6 +4,7 @@ simulator or the mesh builder, so a checkpoint loads where neither is installed.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -46,3 +47,34 @@ def test_importing_the_model_pulls_in_neither_the_simulator_nor_the_mesh_builder
     loaded = _imported_top_level(module)
     assert "torch" in loaded
     assert not loaded & {"mujoco", "trimesh", "app"}
+
+
+def _declared() -> set[str]:
+    """Every distribution pyproject.toml declares, runtime and extras, by its normalised name."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    specs = [*project["dependencies"], *(s for extra in project["optional-dependencies"].values() for s in extra)]
+    return {re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0].lower().replace("_", "-") for spec in specs}
+
+
+def test_every_third_party_import_is_declared_in_pyproject():
+    """What gsmn/, app/, scripts/ and tests/ import is declared (runtime, `dev` or `docs`), not left to arrive as
+    another package's dependency."""
+    from importlib.metadata import packages_distributions
+
+    local = {"gsmn", "app", "__future__"} | {p.stem for p in (ROOT / "scripts").glob("*.py")} \
+        | {p.stem for p in (ROOT / "tests").glob("*.py")}
+    distributions = packages_distributions()
+    declared = _declared()
+    undeclared = {}
+    for folder in ("gsmn", "app", "scripts", "tests"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for name in _imports(path):
+                top = name.split(".")[0]
+                if top in sys.stdlib_module_names or top in local:
+                    continue
+                names = {d.lower().replace("_", "-") for d in distributions.get(top, [top])}
+                if not names & declared:
+                    undeclared.setdefault(top, []).append(str(path.relative_to(ROOT)))
+    assert undeclared == {}
