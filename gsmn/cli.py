@@ -1,7 +1,8 @@
 """The `gsmn` command line: one subcommand per job.
 
 Config flags are generated from the dataclasses in gsmn.config: `--preset tiny` picks a preset and every
-leaf field can be overridden by its dotted path, e.g. `--camera.pitch-deg 30 --world.seed 1`.
+leaf field can be overridden by its dotted path, e.g. `--camera.pitch-deg 30 --world.seed 1`. Installed packages
+add subcommands through the entry-point group `gsmn.commands` (the dashboard's `gsmn serve`, from app.cli).
 """
 
 from __future__ import annotations
@@ -308,7 +309,7 @@ def _above(bars: _TrainingBars):
     return log
 
 
-# -- gsmn average / keep-iterations --------------------------------------------------------------------
+# -- gsmn average / keep-iterations -----------------------------------------------------------------
 def cmd_average(args: argparse.Namespace) -> int:
     from gsmn.model.checkpoint import average_checkpoints
 
@@ -322,14 +323,17 @@ def cmd_keep_iterations(args: argparse.Namespace) -> int:
 
     from gsmn.model.checkpoint import keep_iteration
 
-    while True:
-        kept = keep_iteration(args.run)
-        if kept is not None:
-            print(time.strftime("%H:%M:%S"), "kept", kept, flush=True)
-        time.sleep(args.every)
+    try:
+        while True:
+            kept = keep_iteration(args.run)
+            if kept is not None:
+                print(time.strftime("%H:%M:%S"), "kept", kept, flush=True)
+            time.sleep(args.every)
+    except KeyboardInterrupt:
+        return 0
 
 
-# -- gsmn attribute / analyze ----------------------------------------------------------------------
+# -- gsmn attribute / analyze -----------------------------------------------------------------------
 def _read_results(path: str) -> dict:
     return json.loads(Path(path).read_text())
 
