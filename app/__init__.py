@@ -2,5 +2,5 @@
 
 runner (simulator, renderer, policies; commands in `commands`), recording (episodes in memory), viewer (the page),
 scene (the 3D scene), panels (text and map panels), layers and colors (the model's maps made readable), api (HTTP),
-server (wiring and URLs), fixtures (an untrained checkpoint for tests and demos).
+server (wiring and URLs), cli (the `gsmn serve` subcommand), fixtures (an untrained checkpoint for tests and demos).
 """

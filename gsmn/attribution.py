@@ -34,7 +34,7 @@ import torch
 from gsmn.config import RunConfig
 from gsmn.task.instructions import Instruction
 from gsmn.task.metrics import side_of
-from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.catalogue import CATALOGUE
 from gsmn.world.spec import WorldSpec, world_for_env
 
 STAGES = ("perception", "grounding", "goal", "control", "goal_or_control")

@@ -1,7 +1,8 @@
 """The `gsmn` command line: one subcommand per job.
 
 Config flags are generated from the dataclasses in gsmn.config: `--preset tiny` picks a preset and every
-leaf field can be overridden by its dotted path, e.g. `--camera.pitch-deg 30 --world.seed 1`.
+leaf field can be overridden by its dotted path, e.g. `--camera.pitch-deg 30 --world.seed 1`. Installed packages
+add subcommands through the entry-point group `gsmn.commands` (the dashboard's `gsmn serve`, from app.cli).
 """
 
 from __future__ import annotations
@@ -308,37 +309,97 @@ def _above(bars: _TrainingBars):
     return log
 
 
-# -- gsmn serve ------------------------------------------------------------------------------------
-def cmd_serve(args: argparse.Namespace) -> int:
+# -- gsmn average / keep-iterations -----------------------------------------------------------------
+def cmd_average(args: argparse.Namespace) -> int:
+    from gsmn.model.checkpoint import average_checkpoints
+
+    out = average_checkpoints(args.checkpoints, args.out)
+    print(f"{out}: the mean of {len(args.checkpoints)} checkpoints' weights")
+    return 0
+
+
+def cmd_keep_iterations(args: argparse.Namespace) -> int:
     import time
 
-    from app.server import Dashboard
+    from gsmn.model.checkpoint import keep_iteration
 
-    config = config_from_args(args)
-    try:
-        dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
-                              api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
-                              max_runs=args.max_runs, max_evaluations=args.max_evaluations)
-    except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
-        print(f"gsmn serve: error: {e}", file=sys.stderr)
-        return 2
-    urls = dashboard.urls
-    print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
-    moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
-    print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
-    print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
-    print(f"data: {dashboard.jobs.describe()}", flush=True)
     try:
         while True:
-            time.sleep(1.0)
+            kept = keep_iteration(args.run)
+            if kept is not None:
+                print(time.strftime("%H:%M:%S"), "kept", kept, flush=True)
+            time.sleep(args.every)
     except KeyboardInterrupt:
-        pass
-    finally:
-        dashboard.close()
+        return 0
+
+
+# -- gsmn attribute / analyze -----------------------------------------------------------------------
+def _read_results(path: str) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def cmd_attribute(args: argparse.Namespace) -> int:
+    from gsmn.analysis.failures import print_report
+
+    print_report(_read_results(args.results), Path(args.recordings), Path(args.checkpoint) if args.checkpoint else None)
+    return 0
+
+
+def cmd_analyze_table1(args: argparse.Namespace) -> int:
+    from gsmn.analysis.table1 import table
+
+    labels = dict(item.split("=", 1) for item in args.label)
+    print(table([_read_results(f) for f in args.files], labels, args.files))
+    return 0
+
+
+def cmd_analyze_regions(args: argparse.Namespace) -> int:
+    from gsmn.analysis.regions import region_table
+
+    evaluations = [spec.partition("=")[::2] for spec in args.evaluations]
+    for spec, (_, path) in zip(args.evaluations, evaluations, strict=True):
+        if not path:
+            raise ValueError(f"expected NAME=PATH, got {spec!r}")
+    print(region_table([(name, Path(path)) for name, path in evaluations], args.radius))
+    return 0
+
+
+def cmd_analyze_stop_threshold(args: argparse.Namespace) -> int:
+    from gsmn.analysis.stop_threshold import rescore
+
+    write = (float(args.write[0]), Path(args.write[1])) if args.write else None
+    print(rescore(Path(args.results), Path(args.record) if args.record else None, args.taus, args.radius, write))
+    return 0
+
+
+def cmd_analyze_compare(args: argparse.Namespace) -> int:
+    from gsmn.analysis.compare import compare_report
+
+    print(compare_report(args.before, args.after, args.records_before, args.records_after, args.name, args.png))
+    return 0
+
+
+def cmd_analyze_dagger(args: argparse.Namespace) -> int:
+    from gsmn.analysis.dagger import dagger_table
+
+    print(dagger_table(args.runs, args.first, args.dataset))
     return 0
 
 
 # -- entry point ------------------------------------------------------------------------------------
+COMMAND_GROUP = "gsmn.commands"
+
+
+def add_installed_commands(sub: argparse._SubParsersAction) -> None:
+    """Subcommands that installed packages declare in the entry-point group `gsmn.commands`, each a
+    `register(subparsers)` that adds its parser. The dashboard's `gsmn serve` comes this way (app.cli), so the
+    library never imports the app."""
+    from importlib.metadata import entry_points
+
+    for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        entry.load()(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsmn", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -422,20 +483,63 @@ def build_parser() -> argparse.ArgumentParser:
 
     table2.add_parser(p.add_subparsers(dest="experiment", required=True))
 
-    p = sub.add_parser("serve", help="serve the dashboard: the browser view (viser) and the HTTP API (FastAPI)")
-    p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
-                   "when it exists; without one the expert flies and the page says so)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind both servers (default: loopback only; "
-                   "neither has authentication)")
-    p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
-    p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
-    p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
-    p.add_argument("--data-dir", default="data/dashboard", help="evaluations, fine-tuning runs and their records "
-                   "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
-    p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
-    p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
-    add_config_arguments(p)
-    p.set_defaults(func=cmd_serve)
+    p = sub.add_parser("average", help="average the weights of checkpoints of one model (e.g. several DAggerFM "
+                       "iterations of one run) into a new checkpoint")
+    p.add_argument("checkpoints", nargs="+", help="checkpoint folders of one model")
+    p.add_argument("--out", required=True, help="the averaged checkpoint's folder")
+    p.set_defaults(func=cmd_average)
+
+    p = sub.add_parser("keep-iterations", help="beside `gsmn train ... --run RUN`: copy the run's checkpoint to "
+                       "RUN_itN after every epoch or DAggerFM iteration N (without the Adam state), for "
+                       "`gsmn average`; runs until stopped")
+    p.add_argument("run", type=Path, help="the run folder of `gsmn train ... --run`")
+    p.add_argument("--every", type=float, default=10.0, help="seconds between looks at the run's checkpoint")
+    p.set_defaults(func=cmd_keep_iterations)
+
+    p = sub.add_parser("attribute", help="failure attribution over an evaluation: each failed episode traced to the "
+                       "first stage the model got wrong, and the counts")
+    p.add_argument("results", help="gsmn eval --json output")
+    p.add_argument("recordings", help="the same evaluation's --record folder")
+    p.add_argument("--checkpoint", default=None, help="the model whose heads read the recorded maps (default: the "
+                   "one the evaluation names, or checkpoints/gsmn)")
+    p.set_defaults(func=cmd_attribute)
+
+    p = sub.add_parser("analyze", help="tables from evaluations and training runs (markdown)")
+    analyze = p.add_subparsers(dest="analysis", required=True)
+    a = analyze.add_parser("table1", help="the paper's Table 1 beside ours, a row per evaluation (of the same "
+                           "environments)")
+    a.add_argument("files", nargs="+", help="gsmn eval --json outputs, one row each, in order")
+    a.add_argument("--label", action="append", default=[], metavar="SYSTEM_OR_FILE=TEXT",
+                   help="the row name for a system or for one file (e.g. gsmn='GSMN (20 epochs)')")
+    a.set_defaults(func=cmd_analyze_table1)
+    a = analyze.add_parser("regions", help="navigation against stopping: episodes that entered the success region, "
+                           "and what they did there")
+    a.add_argument("evaluations", nargs="+", metavar="NAME=EVAL_JSON", help="gsmn eval --json files, each named")
+    a.add_argument("--radius", type=float, default=6.0, help="the success radius (m)")
+    a.set_defaults(func=cmd_analyze_regions)
+    a = analyze.add_parser("stop-threshold", help="an evaluation re-scored offline at lower STOP thresholds")
+    a.add_argument("results", help="a `gsmn eval --json` file (a plain network or an ensemble with its P(stop))")
+    a.add_argument("record", nargs="?", help="its --record folder (only for a file without stop_probabilities)")
+    a.add_argument("--taus", type=float, nargs="+", default=None,
+                   help="thresholds to score at (default: 0.5 down to 0.1 in steps of 0.05)")
+    a.add_argument("--radius", type=float, default=None, help="default: the evaluation's own success radius")
+    a.add_argument("--write", nargs=2, metavar=("TAU", "OUT"), help="write the evaluation as flown at TAU")
+    a.set_defaults(func=cmd_analyze_stop_threshold)
+    a = analyze.add_parser("compare", help="before/after of two checkpoints on the same environments")
+    a.add_argument("--before", type=Path, nargs="+", required=True, help="gsmn eval --json files (merged)")
+    a.add_argument("--after", type=Path, nargs="+", required=True, help="gsmn eval --json files (merged)")
+    a.add_argument("--records-before", type=Path, default=None, help="the before evaluation's --record folder")
+    a.add_argument("--records-after", type=Path, default=None, help="the after evaluation's --record folder")
+    a.add_argument("--name", default="episodes", help="what the episodes are, for the table")
+    a.add_argument("--png", type=Path, default=None, help="also draw the before/after figure here (matplotlib)")
+    a.set_defaults(func=cmd_analyze_compare)
+    a = analyze.add_parser("dagger", help="DAggerFM runs side by side, an iteration a row")
+    a.add_argument("runs", nargs="+", type=Path, help="DAggerFM run folders")
+    a.add_argument("--first", type=int, default=1, help="first iteration to print")
+    a.add_argument("--dataset", action="store_true", help="also summarise each run's dataset")
+    a.set_defaults(func=cmd_analyze_dagger)
+
+    add_installed_commands(sub)
     return parser
 
 

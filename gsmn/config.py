@@ -203,6 +203,11 @@ class ModelConfig:
     feature_channels: int = _f(32, "ResNet feature channels C_f (the semantic map has as many)")
     relevance_channels: int = _f(3, "channels of the relevance map R")
     goal_channels: int = _f(2, "channels of the goal map G")
+    # Class counts of the auxiliary heads, here rather than read from the catalogue so that the model imports
+    # without the mesh builder; tests/test_model.py checks them against gsmn.world.landmarks and gsmn.task.
+    landmark_classes: int = _f(63, "landmark classes the perception and instruction heads tell apart: the models "
+                                   "of the landmark catalogue, in its order")
+    side_classes: int = _f(4, "sides of a landmark an instruction names (left, right, front, back)")
     word_embedding_dim: int = _f(20, "instruction word embedding size")
     instruction_hidden: int = _f(30, "instruction LSTM hidden size = sentence embedding size")
     leaky_lambda: float = _f(0.2, "leaky-integrator rate of the semantic map (first step: S = F)")
@@ -229,8 +234,8 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         _check(self.map_size >= 2 and self.robot_map_size >= 2, "model map sizes must be >= 2")
-        for name in ("feature_channels", "relevance_channels", "goal_channels", "word_embedding_dim",
-                     "instruction_hidden", "controller_hidden", "fpv_hidden", "fpv_memory"):
+        for name in ("feature_channels", "relevance_channels", "goal_channels", "landmark_classes", "side_classes",
+                     "word_embedding_dim", "instruction_hidden", "controller_hidden", "fpv_hidden", "fpv_memory"):
             _check(getattr(self, name) >= 1, f"model.{name} must be >= 1, got {getattr(self, name)}")
         _check(0 < self.leaky_lambda <= 1, f"model.leaky_lambda must be in (0, 1], got {self.leaky_lambda}")
         _check(0 <= self.controller_dropout < 1, "model.controller_dropout must be in [0, 1)")

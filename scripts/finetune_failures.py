@@ -34,6 +34,8 @@ from pathlib import Path
 
 import httpx
 
+from gsmn.analysis.compare import figure
+
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- finetune-failures:start -->", "<!-- finetune-failures:end -->"
 
@@ -116,47 +118,6 @@ def evaluate(client: httpx.Client, what: str, **request) -> dict:
 
 def fmt(v, unit: str = " %") -> str:
     return "n/a" if v is None else f"{v:.1f}{unit}"
-
-
-def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
-    """Success and landmark success, mean distance, and failures by attribution, before and after, for each set."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    stages = ("perception", "grounding", "goal", "control")
-    colours = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b"}
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    ticks, names = [], []
-    for g, (name, before, after) in enumerate(rows):
-        for k, e in enumerate((before, after)):
-            x = 2.6 * g + k
-            s = e["summary"] or {}
-            ok, lm = s.get("success") or 0.0, s.get("landmark_success") or 0.0
-            axes[0].bar(x, lm, 0.8, color="#cfe8d8", edgecolor="#1e8449", label="landmark success" if x == 0 else None)
-            axes[0].bar(x, ok, 0.8, color="#1e8449", label="success" if x == 0 else None)
-            axes[1].bar(x, s.get("mean_distance") or 0.0, 0.8, color="#7f8c8d" if k == 0 else "#34495e")
-            bottom = 0
-            for stage in stages:
-                n = e["stages"].get(stage, 0)
-                axes[2].bar(x, n, 0.8, bottom=bottom, color=colours[stage], label=stage if x == 0 else None)
-                bottom += n
-            ticks.append(x)
-            names.append(f"{'before' if k == 0 else 'after'}\n{name.split(' (')[0]}")
-    for ax in axes:
-        ax.set_xticks(ticks, names, fontsize=8)
-    axes[0].set_ylim(0, 100)
-    axes[0].set_ylabel("% of episodes")
-    axes[0].set_title("Success and landmark success")
-    axes[0].legend(fontsize=8)
-    axes[1].set_ylabel("m")
-    axes[1].set_title("Mean distance to the goal")
-    axes[2].set_ylabel("failed episodes")
-    axes[2].set_title("Failures by attribution")
-    axes[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
 
 
 def markdown(args, run: dict, rows: list[tuple[str, dict, dict]], compares: list[dict], png: str) -> str:

@@ -8,7 +8,6 @@ import dataclasses
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -212,9 +211,8 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     assert attribute_record(json.loads(json.dumps(record.to_dict())), trace, Heads.of(model), config) == a
     results = tmp_path / "eval.json"
     results.write_text(json.dumps(results_dict("gsmn", str(folder), [record], config, 1.0, 1)))
-    script = Path(__file__).resolve().parents[1] / "scripts" / "attribution_counts.py"
-    counts = subprocess.run([sys.executable, str(script), str(results), str(tmp_path / "rec")], capture_output=True,
-                            text=True)
+    script = [sys.executable, "-m", "gsmn.cli", "attribute"]
+    counts = subprocess.run([*script, str(results), str(tmp_path / "rec")], capture_output=True, text=True)
     assert counts.returncode == 0, counts.stderr
     assert counts.stdout.startswith("1 failures of 1 episodes") and f"{STAGE_TITLES[a.stage]:<15} 1" in counts.stdout
     n_ambiguous = 1 if record.ambiguous else 0
@@ -222,7 +220,7 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     flipped = json.loads(results.read_text())  # the same failure with the other ambiguity is counted the other way
     flipped["episodes"][0]["ambiguous"] = not record.ambiguous
     (tmp_path / "flipped.json").write_text(json.dumps(flipped))
-    again_counts = subprocess.run([sys.executable, str(script), str(tmp_path / "flipped.json"), str(tmp_path / "rec")],
+    again_counts = subprocess.run([*script, str(tmp_path / "flipped.json"), str(tmp_path / "rec")],
                                   capture_output=True, text=True)
     assert f"({1 - n_ambiguous} with an ambiguous instruction)" in again_counts.stdout, again_counts.stderr
     inside = all(0 <= v <= config.world.field_size for v in (record.final_x, record.final_y))
@@ -234,16 +232,10 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
 
 
 def test_ambiguous_episodes_are_told_apart_by_where_they_ended():
-    """scripts/attribution_counts.py's ambiguous_endings: an ambiguous episode that ended at the named landmark,
-    at another of the same name, or at neither is counted so; unambiguous episodes are not counted."""
-    import importlib.util
-
+    """gsmn.analysis.failures.ambiguous_endings (`gsmn attribute`): an ambiguous episode that ended at the named
+    landmark, at another of the same name, or at neither is counted so; unambiguous episodes are not counted."""
+    from gsmn.analysis.failures import ambiguous_endings
     from gsmn.world.spec import world_for_env
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "attribution_counts.py"
-    spec = importlib.util.spec_from_file_location("attribution_counts", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
 
     config = preset("paper")
     world = next(w for w in (world_for_env(i, config.world) for i in range(70, 400))
@@ -263,4 +255,4 @@ def test_ambiguous_episodes_are_told_apart_by_where_they_ended():
     results = {"config": config.to_dict(),
                "episodes": [episode(lm.x + 1, lm.y), episode(other.x, other.y + 1), episode(other.x + 0.5, other.y),
                             episode(*far), episode(other.x, other.y, ambiguous=False)]}
-    assert script.ambiguous_endings(results) == {"the named one": 1, "another of that name": 2, "neither": 1}
+    assert ambiguous_endings(results) == {"the named one": 1, "another of that name": 2, "neither": 1}

@@ -14,7 +14,8 @@ import pytest
 from gsmn.cli import build_parser
 
 COMMANDS = [["world"], ["eval"], ["fit-avg-forward"], ["collect"], ["train", "supervised"], ["train", "dagger"],
-            ["serve"]]
+            ["average"], ["keep-iterations"], ["attribute"], ["analyze", "table1"], ["analyze", "regions"],
+            ["analyze", "stop-threshold"], ["analyze", "compare"], ["analyze", "dagger"], ["serve"]]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=lambda c: " ".join(c))
@@ -26,6 +27,20 @@ def test_help_renders(command, capsys):
     assert out.startswith("usage: gsmn " + " ".join(command))
     if command[0] in ("eval", "collect", "train"):
         assert "--train.batch-size" in out
+    if command[0] == "serve":  # registered by app.cli through the gsmn.commands entry point
+        for flag in ("--checkpoint", "--host", "--port", "--api-port", "--env-id", "--data-dir", "--max-runs",
+                     "--max-evaluations", "--preset", "--camera.shadows"):
+            assert flag in out
+
+
+def test_the_gsmn_script_lists_serve():
+    """`gsmn serve` reaches the dashboard through the entry-point group, not through an import in gsmn/
+    (tests/test_structure.py checks that importing gsmn.cli leaves the app out)."""
+    script = Path(sys.executable).with_name("gsmn")
+    out = subprocess.run([str(script), "--help"], capture_output=True, text=True, check=True).stdout
+    assert "serve" in out and "serve the dashboard" in out
+    out = subprocess.run([str(script), "serve", "--help"], capture_output=True, text=True, check=True).stdout
+    assert "--max-evaluations" in out and "--data-dir" in out
 
 
 def _children(pid: int) -> list[int]:

@@ -6,7 +6,6 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,7 +151,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "nope", "--env-ids", "70"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown system" in bad.stderr
-    # scripts/results_table.py makes the Table 1 markdown from such files, and refuses rows on other environments.
+    # `gsmn analyze table1` makes the Table 1 markdown from such files, and refuses rows on other environments.
     oracle, progress = tmp_path / "oracle.json", tmp_path / "oracle.progress.jsonl"
     subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "70,71,72", "--json",
                     str(oracle), "--preset", "tiny", "--progress", str(progress)], check=True, capture_output=True)
@@ -169,18 +168,17 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
         assert line["region_steps"] == region_steps_of(record, TINY.task.success_radius)
         if record["success"]:  # it said STOP inside the region: the last observation is one of its steps
             assert line["region_steps"][-1] == len(record["trajectory"]) - 1
-    script = Path(__file__).resolve().parents[1] / "scripts" / "results_table.py"
-    table = subprocess.run([sys.executable, str(script), str(out), str(oracle), "--label", "oracle=The expert"],
+    table1 = [sys.executable, "-m", "gsmn.cli", "analyze", "table1"]
+    table = subprocess.run([*table1, str(out), str(oracle), "--label", "oracle=The expert"],
                            capture_output=True, text=True)
     assert table.returncode == 0, table.stderr
     rows = table.stdout.strip().splitlines()
     assert len(rows) == 4 and rows[2].startswith("| Random landmark | ") and rows[3].startswith("| The expert | ")
     oracle_summary = json.loads(oracle.read_text())["summary"]
     assert f"| {oracle_summary['success']:.2f} " in rows[3] and "| 87.87 (86.47) |" in rows[3]
-    # scripts/region_counts.py: every success entered the success region; the oracle's stops are its successes.
-    region_counts = Path(__file__).resolve().parents[1] / "scripts" / "region_counts.py"
-    counts = subprocess.run([sys.executable, str(region_counts), f"oracle={oracle}", f"random={out}"],
-                            capture_output=True, text=True)
+    # `gsmn analyze regions`: every success entered the success region; the oracle's stops are its successes.
+    counts = subprocess.run([sys.executable, "-m", "gsmn.cli", "analyze", "regions", f"oracle={oracle}",
+                             f"random={out}"], capture_output=True, text=True)
     assert counts.returncode == 0, counts.stderr
     for name, path in (("oracle", oracle), ("random", out)):
         episodes = json.loads(path.read_text())["episodes"]
@@ -189,10 +187,23 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
         assert successes == sum(e["success"] for e in episodes) and entered >= successes
         assert row[7] == ("-" if entered == successes else "not kept")  # neither keeps a P(stop)
     assert "entered: only oracle" in counts.stdout
+    # `gsmn analyze compare`: episode by episode, what the expert fixed and broke beside random-landmark.
+    compare = [sys.executable, "-m", "gsmn.cli", "analyze", "compare", "--name", "three"]
+    compared = subprocess.run([*compare, "--before", str(out), "--after", str(oracle)], capture_output=True, text=True)
+    assert compared.returncode == 0, compared.stderr
+    before = {e["env_id"]: e["success"] for e in json.loads(out.read_text())["episodes"]}
+    after = {e["env_id"]: e["success"] for e in json.loads(oracle.read_text())["episodes"]}
+    fixed, broken = sum(after[i] and not before[i] for i in before), sum(before[i] and not after[i] for i in before)
+    assert f"Fixed {fixed}, broken {broken} (landmark success: " in compared.stdout
+    rows = compared.stdout.splitlines()
+    assert rows[2].startswith("| three (3) | before: ") and rows[3].startswith("| three (3) | after: ")
+    assert f"| {oracle_summary['success']:.2f} (" in rows[3]
     d["env_ids"] = [70, 71]
     other = tmp_path / "other.json"
     other.write_text(json.dumps(d))
-    mixed = subprocess.run([sys.executable, str(script), str(oracle), str(other)], capture_output=True, text=True)
+    mixed = subprocess.run([*table1, str(oracle), str(other)], capture_output=True, text=True)
+    assert mixed.returncode == 2 and "different environments" in mixed.stderr
+    mixed = subprocess.run([*compare, "--before", str(oracle), "--after", str(other)], capture_output=True, text=True)
     assert mixed.returncode == 2 and "different environments" in mixed.stderr
 
 
@@ -279,8 +290,8 @@ def test_each_shipped_checkpoint_flies_as_its_own_system(system):
     assert all(math.isfinite(v) for action in record.actions for v in action[:2])
 
 
-def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path):
-    """scripts/stop_threshold.py: at 0.5 it reproduces the recorded outcomes; at a lower threshold each episode
+def test_stop_threshold_analysis_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path):
+    """`gsmn analyze stop-threshold`: at 0.5 it reproduces the recorded outcomes; at a lower threshold each episode
     stops at the first step whose recorded P(stop) is above it, and is scored there; ensembles are refused."""
     from app.fixtures import make_untrained_checkpoint
     from gsmn.attribution import load_trace, trace_path
@@ -297,8 +308,8 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     assert all(np.array_equal(np.float32(r.stop_probabilities), p[r.env_id]) for r in records)
     tau = float(np.median(np.concatenate(list(p.values()))))  # about half the steps are above it
     assert 0 < tau < 0.5
-    script = Path(__file__).resolve().parents[1] / "scripts" / "stop_threshold.py"
-    run = subprocess.run([sys.executable, str(script), str(results), str(tmp_path / "rec"), "--taus", "0.5", str(tau)],
+    script = [sys.executable, "-m", "gsmn.cli", "analyze", "stop-threshold"]
+    run = subprocess.run([*script, str(results), str(tmp_path / "rec"), "--taus", "0.5", str(tau)],
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in run.stdout.splitlines()
@@ -315,15 +326,15 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     assert rows[f"{tau:g}"][1].endswith(f"({expected_ok})") and rows[f"{tau:g}"][3] == str(expected_stops)
     assert expected_stops == 2  # both stop early at this threshold
     # the file's own P(stop) alone gives the same table
-    alone = subprocess.run([sys.executable, str(script), str(results), "--taus", "0.5", str(tau)],
+    alone = subprocess.run([*script, str(results), "--taus", "0.5", str(tau)],
                            capture_output=True, text=True)
     assert alone.returncode == 0 and alone.stdout.splitlines()[1:] == run.stdout.splitlines()[1:], alone.stderr
     base_ok = sum(r.success for r in records)
     chosen = (0.5, base_ok) if base_ok >= expected_ok else (tau, expected_ok)  # ties go to the higher tau
     assert f"most successes (ties: the higher tau): tau {chosen[0]:g}, {chosen[1]} of 2" in alone.stdout
-    # --write: the evaluation as flown at tau, each episode cut at its STOP, for results_table.py and the dashboard
+    # --write: the evaluation as flown at tau, each episode cut at its STOP, for `analyze table1` and the dashboard
     flown = tmp_path / "at_tau.json"
-    wrote = subprocess.run([sys.executable, str(script), str(results), "--taus", str(tau), "--write", str(tau),
+    wrote = subprocess.run([*script, str(results), "--taus", str(tau), "--write", str(tau),
                             str(flown)], capture_output=True, text=True)
     assert wrote.returncode == 0, wrote.stderr
     at_tau = json.loads(flown.read_text())
@@ -333,7 +344,7 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
         t = int(np.flatnonzero(p[r.env_id] > tau)[0])  # both stop early at this threshold (above)
         assert e["stopped"] and e["steps"] == t and len(e["trajectory"]) == len(e["actions"]) == t + 1
         assert e["actions"][-1][2] and (e["final_x"], e["final_y"]) == tuple(r.trajectory[t][:2])
-    again = subprocess.run([sys.executable, str(script), str(flown)], capture_output=True, text=True)
+    again = subprocess.run([*script, str(flown)], capture_output=True, text=True)
     assert again.returncode == 2 and "re-scored at tau" in again.stderr
     # an ensemble keeps the mean P(stop) it acted on, so its file is scored too; its recording alone is refused
     ensemble = evaluate("gsmn", [70], config, folder, mirror_ensemble=True)
@@ -346,23 +357,23 @@ def test_stop_threshold_script_replays_a_recorded_evaluation_at_lower_thresholds
     assert records[0].member_stop_probabilities is None  # a single network has no members
     back = EpisodeRecord.from_dict(json.loads(json.dumps(ensemble[0].to_dict())))
     assert back.member_stop_probabilities == ensemble[0].member_stop_probabilities
-    scored = subprocess.run([sys.executable, str(script), str(tmp_path / "ens.json")], capture_output=True, text=True)
+    scored = subprocess.run([*script, str(tmp_path / "ens.json")], capture_output=True, text=True)
     assert scored.returncode == 0 and f"({int(ensemble[0].success)})" in scored.stdout.splitlines()[3], scored.stderr
     older = json.loads(results.read_text())  # a file written before P(stop) was kept
     for e in older["episodes"]:
         del e["stop_probabilities"]
     (tmp_path / "older.json").write_text(json.dumps(older))
-    needs = subprocess.run([sys.executable, str(script), str(tmp_path / "older.json")], capture_output=True, text=True)
+    needs = subprocess.run([*script, str(tmp_path / "older.json")], capture_output=True, text=True)
     assert needs.returncode == 2 and "give its --record folder" in needs.stderr
     older["mirror_ensemble"] = True
     (tmp_path / "mirrored.json").write_text(json.dumps(older))
-    refused = subprocess.run([sys.executable, str(script), str(tmp_path / "mirrored.json"), str(tmp_path / "rec")],
+    refused = subprocess.run([*script, str(tmp_path / "mirrored.json"), str(tmp_path / "rec")],
                              capture_output=True, text=True)
     assert refused.returncode == 2 and "one network's P(stop)" in refused.stderr
 
 
 def test_region_counts_counts_the_stops_an_ensembles_mean_took_away(tmp_path):
-    """scripts/region_counts.py on a file that keeps an ensemble's members' P(stop): a failure that flew through the
+    """`gsmn analyze regions` on a file that keeps an ensemble's members' P(stop): a failure that flew through the
     success region is counted when one member alone was above 0.5 there and the mean was not, and only then."""
     from gsmn.task.metrics import side_of
 
@@ -380,8 +391,8 @@ def test_region_counts_counts_the_stops_an_ensembles_mean_took_away(tmp_path):
     kept = episode(2, [(0.0, 0.0), (0.45, 0.45), (0.9, 0.0)])  # nobody above 0.5 in the region (only outside)
     path = tmp_path / "ens.json"
     path.write_text(json.dumps({"episodes": [taken, kept]}))
-    script = Path(__file__).resolve().parents[1] / "scripts" / "region_counts.py"
-    run = subprocess.run([sys.executable, str(script), f"ens={path}"], capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-m", "gsmn.cli", "analyze", "regions", f"ens={path}"], capture_output=True,
+                         text=True)
     assert run.returncode == 0, run.stderr
     assert "| ens | 2 | 0 | 2 |" in run.stdout
     assert ("ens: of 2 failures that flew through the region, 1 had a step there at which a member alone would have "

@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from gsmn.world import catalogue
 from gsmn.world import landmarks as lm
 from gsmn.world.assets import ASSETS_DIR, load_catalogue, write_assets
 
@@ -38,6 +39,13 @@ def test_catalogue_names_and_size():
     assert len(set(names)) == 63
     assert all(re.fullmatch(r"[a-z][a-z0-9]*(_[a-z0-9]+)*", n) for n in names)
     assert lm.model_by_name("fir_tree") is lm.CATALOGUE[names.index("fir_tree")]
+
+
+def test_each_catalogue_entry_is_paired_with_its_builder_in_class_id_order():
+    """gsmn.world.catalogue is the data (what world sampling and the model read); landmarks adds the meshes."""
+    assert [(m.name, m.noun_phrase, m.radius) for m in lm.CATALOGUE] == \
+        [(c.name, c.noun_phrase, c.radius) for c in catalogue.CATALOGUE]
+    assert lm.NOUN_PHRASES == catalogue.NOUN_PHRASES
     with pytest.raises(KeyError):
         lm.model_by_name("no_such_landmark")
 

@@ -7,11 +7,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from gsmn.cli import main
 from gsmn.config import LossConfig, ModelConfig, RunConfig, preset
 from gsmn.geometry import in_image, project_points
 from gsmn.model import (
@@ -40,8 +42,11 @@ from gsmn.task.expert import Expert
 from gsmn.task.instructions import SIDES, make_instruction
 from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
+from gsmn.world.landmarks import CATALOGUE
 
 TINY = preset("tiny")
+CHECKPOINTS = {p.name: p for p in (Path(__file__).resolve().parents[1] / "checkpoints").iterdir()
+               if (p / "config.json").is_file()}
 SIGMOID = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, filter_activation="sigmoid"))  # original
 VOCABULARY = Vocabulary.default()
 
@@ -435,10 +440,32 @@ def test_a_checkpoint_from_before_filter_activation_loads_with_the_sigmoid(tmp_p
                                    rtol=0, atol=0)
 
 
+def test_the_head_class_counts_are_the_catalogues_and_the_tasks():
+    """ModelConfig carries the class counts so that the model need not import the catalogue; they cannot drift."""
+    assert ModelConfig().landmark_classes == len(CATALOGUE) == 63
+    assert ModelConfig().side_classes == len(SIDES)
+    heads = seeded_model("gsmn").heads
+    assert heads.perception.out_features == heads.language_landmark.out_features == len(CATALOGUE)
+    assert heads.language_side.out_features == len(SIDES)
+
+
+@pytest.mark.parametrize("name", sorted(CHECKPOINTS))
+def test_the_shipped_checkpoints_load_without_the_class_count_fields(name):
+    """checkpoints/*/config.json predate model.landmark_classes and model.side_classes: the defaults fill them."""
+    folder = CHECKPOINTS[name]
+    raw = json.loads((folder / "config.json").read_text())
+    assert "landmark_classes" not in raw["model"] and "side_classes" not in raw["model"]
+    model, config, _, meta = load_checkpoint(folder)
+    assert meta["kind"] == name
+    assert (config.model.landmark_classes, config.model.side_classes) == (len(CATALOGUE), len(SIDES))
+    assert model.heads.perception.out_features == len(CATALOGUE)
+
+
 def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
     a = save_checkpoint(tmp_path / "a", seeded_model("gsmn", seed=0), TINY, VOCABULARY)
     b = save_checkpoint(tmp_path / "b", seeded_model("gsmn", seed=1), TINY, VOCABULARY)
-    mean = average_checkpoints([a, b], tmp_path / "mean")
+    mean = tmp_path / "mean"
+    assert main(["average", str(a), str(b), "--out", str(mean)]) == 0  # `gsmn average`: average_checkpoints
     (wa, *_), (wb, *_), (wm, _, vocabulary, meta) = (load_checkpoint(f) for f in (a, b, mean))
     sa, sb, sm = wa.state_dict(), wb.state_dict(), wm.state_dict()
     assert any(not torch.equal(sa[k], sb[k]) for k in sa)
@@ -452,6 +479,7 @@ def test_averaging_checkpoints_gives_the_mean_of_their_weights(tmp_path):
     for bad in (other, sigmoid):
         with pytest.raises(CheckpointError, match=f"{bad}.*differs"):
             average_checkpoints([a, bad], tmp_path / "bad")
+        assert main(["average", str(a), str(bad), "--out", str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
 
 
@@ -475,27 +503,22 @@ def test_a_memory_baseline_warm_started_from_gs_fpv_flies_as_it_and_can_learn_to
 
 
 def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path, monkeypatch):
-    """scripts/keep_iterations.py (run beside a training run) keeps RUN_itN per iteration, without the Adam state,
-    and takes no copy of a checkpoint it already has or of one without an iteration."""
-    import importlib.util
-    from pathlib import Path
+    """keep_iteration (`gsmn keep-iterations`, run beside a training run) keeps RUN_itN per iteration, without the
+    Adam state, and takes no copy of a checkpoint it already has or of one without an iteration."""
+    from gsmn.model import checkpoint as keep
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "keep_iterations.py"
-    spec = importlib.util.spec_from_file_location("keep_iterations", path)
-    keep = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(keep)
     run = tmp_path / "run"
-    assert keep.keep_once(run) is None  # nothing written yet
+    assert keep.keep_iteration(run) is None  # nothing written yet
     model = seeded_model("gsmn", seed=0)
     optimizer = torch.optim.Adam(model.parameters())
     save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {}})
-    assert keep.keep_once(run) is None  # a checkpoint that says no iteration
+    assert keep.keep_iteration(run) is None  # a checkpoint that says no iteration
     for n, seed in ((1, 0), (2, 1)):
         model = seeded_model("gsmn", seed=seed)
         save_checkpoint(run / "checkpoint", model, TINY, VOCABULARY, meta={"metrics": {"iteration": n}},
                         optimizer_state=optimizer.state_dict())
-        assert keep.keep_once(run) == tmp_path / f"run_it{n}"
-        assert keep.keep_once(run) is None
+        assert keep.keep_iteration(run) == tmp_path / f"run_it{n}"
+        assert keep.keep_iteration(run) is None
         kept, *_ = load_checkpoint(tmp_path / f"run_it{n}")
         assert all(torch.equal(a, b) for a, b in zip(kept.state_dict().values(), model.state_dict().values(),
                                                      strict=True))
@@ -512,9 +535,9 @@ def test_keep_iterations_copies_each_new_checkpoint_once(tmp_path, monkeypatch):
         return out
 
     monkeypatch.setattr(keep.shutil, "copytree", copy_during_replacement)
-    assert keep.keep_once(run) is None
+    assert keep.keep_iteration(run) is None
     monkeypatch.undo()
-    assert keep.keep_once(run) == tmp_path / "run_it4"
+    assert keep.keep_iteration(run) == tmp_path / "run_it4"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run_it1", "run_it2", "run_it4"]
 
 

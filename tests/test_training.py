@@ -249,10 +249,10 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     assert len(train) == 4, "discarding from the DAgger dataset never touches the expert store"
     model, *_ = load_checkpoint(checkpoint)
     assert model.kind == "gsmn"
-    # scripts/dagger_rows.py, the docs' table of such runs, reads this run as the log and the dataset say.
-    script = Path(__file__).resolve().parents[1] / "scripts" / "dagger_rows.py"
-    out = subprocess.run([sys.executable, str(script), str(tmp_path / "dagger"), "--dataset"], capture_output=True,
-                         text=True, check=True).stdout.splitlines()
+    # `gsmn analyze dagger`, the docs' table of such runs, reads this run as the log and the dataset say.
+    script = [sys.executable, "-m", "gsmn.cli", "analyze", "dagger"]
+    out = subprocess.run([*script, str(tmp_path / "dagger"), "--dataset"], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
     rows = [line.split(" | ") for line in out if line.startswith("| 1 |") or line.startswith("| 2 |")]
     assert [r[1] for r in rows] == ["0.5", "0.25"]
     assert [r[-1].rstrip(" |") for r in rows] == [
@@ -271,7 +271,7 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     other.mkdir()
     (other / "config.json").write_text((tmp_path / "dagger" / "config.json").read_text())
     (other / "log.jsonl").write_text(json.dumps({**log[1], "rollout_success": 0.5, "rollout_cut": 1.0}) + "\n")
-    out = subprocess.run([sys.executable, str(script), str(other)], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run([*script, str(other)], capture_output=True, text=True, check=True).stdout
     assert out.splitlines()[-1].endswith(" | 1 / 2 |")
 
 

@@ -131,6 +131,43 @@ def average_checkpoints(folders: list[str | Path], out: str | Path) -> Path:
                            meta={"averaged_from": [str(f) for f in folders]})  # no metrics: nobody measured it yet
 
 
+def checkpoint_iteration(meta_text: str) -> int | None:
+    """The DAggerFM iteration (or supervised epoch) a checkpoint's meta.json says it was written after, or None."""
+    metrics = json.loads(meta_text).get("metrics", {})
+    n = metrics.get("iteration", metrics.get("epoch"))
+    return None if n is None else int(n)
+
+
+def keep_iteration(run: str | Path) -> Path | None:
+    """Copy a training run's checkpoint (weights, config, vocabulary, meta; not the Adam state) to RUN_itN when its
+    iteration (or epoch) N has no copy yet, for averaging (`gsmn keep-iterations` polls this beside a training run).
+    Returns the copy, or None. The run replaces its checkpoint by a rename, so a copy is kept only if the run's
+    meta.json was the same before and after it (and the same as the copy's); one taken while the checkpoint was
+    being replaced is dropped, to be taken again on the next call."""
+    run = Path(run)
+    meta = run / "checkpoint" / "meta.json"
+    try:
+        before = meta.read_text()
+        n = checkpoint_iteration(before)
+    except (OSError, json.JSONDecodeError):  # not written yet, or being replaced
+        return None
+    dst = run.parent / f"{run.name}_it{n}"
+    if n is None or dst.exists():
+        return None
+    tmp = run.parent / f".{dst.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        shutil.copytree(run / "checkpoint", tmp, ignore=shutil.ignore_patterns(OPTIMIZER_FILE))
+        unchanged = meta.read_text() == before == (tmp / "meta.json").read_text()
+    except OSError:
+        unchanged = False
+    if not unchanged:  # replaced while copying: try again next time
+        shutil.rmtree(tmp, ignore_errors=True)
+        return None
+    tmp.rename(dst)
+    return dst
+
+
 def _read_json(folder: Path, name: str) -> Any:
     path = folder / name
     if not path.is_file():

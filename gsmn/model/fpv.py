@@ -28,8 +28,6 @@ from gsmn.model.grid import MapGeometry
 from gsmn.model.gsmn import add_shared_modules
 from gsmn.model.heads import AuxiliaryHeads
 from gsmn.model.perception import DOWNSCALE, standardise
-from gsmn.task.instructions import SIDES
-from gsmn.world.landmarks import CATALOGUE
 
 MemoryState = tuple[torch.Tensor, torch.Tensor] | None  # LSTM (h, c), each (1, B, hidden)
 
@@ -70,7 +68,7 @@ class GSFPV(nn.Module):
         extra = m.instruction_hidden + (m.fpv_memory if memory else 0)
         self.perceptron = DensePerceptron(map_features, extra, m.fpv_hidden, m.controller_dropout, slope)
         self.heads = AuxiliaryHeads(m.feature_channels, m.relevance_channels, None, m.instruction_hidden,
-                                    len(CATALOGUE), len(SIDES))
+                                    m.landmark_classes, m.side_classes)
 
     def memory_columns(self) -> slice:
         """The perceptron's input columns that read the LSTM's outputs, after the maps and the sentence embedding

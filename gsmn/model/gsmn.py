@@ -37,8 +37,6 @@ from gsmn.model.noise import perturb_poses
 from gsmn.model.perception import ResNet13, standardise
 from gsmn.model.projection import ground_points, project_to_ground
 from gsmn.model.semantic_map import accumulate, leaky_integrate
-from gsmn.task.instructions import SIDES
-from gsmn.world.landmarks import CATALOGUE
 
 
 @dataclass(frozen=True)
@@ -119,7 +117,7 @@ class GSMN(nn.Module):
                                         m.controller_dropout, m.instruction_hidden * m.controller_uses_instruction,
                                         slope)
         self.heads = AuxiliaryHeads(m.feature_channels, m.relevance_channels, m.goal_channels, m.instruction_hidden,
-                                    len(CATALOGUE), len(SIDES))
+                                    m.landmark_classes, m.side_classes)
 
     # -- pieces ---------------------------------------------------------------------------------------------
     def encode_instruction(self, tokens: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:

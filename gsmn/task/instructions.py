@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gsmn.config import TaskConfig
-from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.catalogue import NOUN_PHRASES
 from gsmn.world.spec import WorldSpec
 
 SIDES = ("left", "right", "front", "back")
@@ -62,7 +62,6 @@ def tokenize(text: str) -> list[str]:
     return re.sub(r"[^\w\s]|_", " ", text).lower().split()
 
 
-NOUN_PHRASES: tuple[str, ...] = tuple(sorted({m.noun_phrase for m in CATALOGUE}))
 VOCABULARY: tuple[str, ...] = tuple(sorted(
     set(tokenize(TEMPLATE.format(side="", noun_phrase=""))) | set(SIDES)
     | {w for phrase in NOUN_PHRASES for w in tokenize(phrase)}))

@@ -5,18 +5,24 @@ camera pose T_world_camera (computer-vision convention, see gsmn.world.sim) and 
 model's ground projection needs. Stepping is deterministic for a given environment id and action
 sequence. Actions are in SI units and clipped to the drone's limits (1.6 m/s, 2.44 rad/s, no reversing);
 STOP is the task's business (gsmn.task), not the simulator's.
+
+The simulator (MuJoCo) and the landmark assets load when an `Env` is made, not when this module is imported: the
+model and the policies use the observation types without the simulator.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gsmn.config import RunConfig
-from gsmn.world.assets import AssetModel, load_catalogue
-from gsmn.world.sim import Simulator
 from gsmn.world.spec import WorldSpec, world_for_env
+
+if TYPE_CHECKING:
+    from gsmn.world.assets import AssetModel
+    from gsmn.world.sim import Simulator
 
 
 @dataclass(frozen=True)
@@ -50,6 +56,8 @@ class Env:
 
     def __init__(self, config: RunConfig | None = None, catalogue: tuple[AssetModel, ...] | None = None,
                  render: bool = True):
+        from gsmn.world.assets import load_catalogue
+
         self.config = config or RunConfig()
         self.catalogue = catalogue or load_catalogue()
         self.render = render
@@ -66,6 +74,8 @@ class Env:
     def reset(self, env_id: int, instruction: str | None = None, world: WorldSpec | None = None
               ) -> Observation:
         """Start an episode in environment `env_id` (or in an explicit `world`) at its start corner."""
+        from gsmn.world.sim import Simulator
+
         world = world or world_for_env(env_id, self.config.world)
         if self.sim is None or self.sim.world != world:
             if self.sim is not None:

@@ -14,8 +14,10 @@ rock-like jitter comes from a fixed-seed generator, so ``build()`` is byte-for-b
 Conventions: metres, z up, the footprint centred on x = y = 0, resting on z = 0.  ``radius`` is the
 model's radius class (the goal point of an instruction is placed ``radius`` from the centre); the mesh
 stays within ``0.8 * radius`` horizontally and the vertical axis x = y = 0 passes through solid material.
-Each model is a list of parts, one flat colour per part.  ``CATALOGUE`` order is the class id used by
-the perception head.  ``gsmn.world.assets`` writes the built meshes to disk for the simulator and viewer.
+Each model is a list of parts, one flat colour per part.  The names, phrases and radius classes are data in
+``gsmn.world.catalogue`` (its order is the class id used by the perception head); ``CATALOGUE`` here pairs each
+entry with its builder, registered by ``@landmark(name)``.  ``gsmn.world.assets`` writes the built meshes to
+disk for the simulator and viewer.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ import numpy as np
 import trimesh
 from trimesh import creation
 from trimesh import transformations as tf
+
+from gsmn.world.catalogue import CATALOGUE as CLASSES
+from gsmn.world.catalogue import NOUN_PHRASES  # noqa: F401 - re-exported
 
 RGBA = tuple[float, float, float, float]
 Vec = Sequence[float]
@@ -285,7 +290,7 @@ class Parts:
         return parts
 
 
-_REGISTRY: list[LandmarkModel] = []
+_BUILDERS: dict[str, Callable[[Parts], None]] = {}
 
 
 def _run(builder: Callable[[Parts], None]) -> list[LandmarkPart]:
@@ -294,11 +299,13 @@ def _run(builder: Callable[[Parts], None]) -> list[LandmarkPart]:
     return parts.build()
 
 
-def landmark(name: str, phrase: str, radius: float) -> Callable[[Callable[[Parts], None]], Callable[[Parts], None]]:
-    """Register a builder as catalogue entry (registration order = class id)."""
+def landmark(name: str) -> Callable[[Callable[[Parts], None]], Callable[[Parts], None]]:
+    """Register a builder as the mesh of the catalogue entry `name` (gsmn.world.catalogue)."""
 
     def register(builder: Callable[[Parts], None]) -> Callable[[Parts], None]:
-        _REGISTRY.append(LandmarkModel(name, phrase, radius, functools.partial(_run, builder)))
+        if name in _BUILDERS:
+            raise ValueError(f"landmark {name!r} has two builders")
+        _BUILDERS[name] = builder
         return builder
 
     return register
@@ -466,7 +473,7 @@ def seven_segment(letter: str, x: float, z: float, w: float, h: float, stroke: f
 # ---- trees and plants ------------------------------------------------------------------------------
 
 
-@landmark("fir_tree", "fir tree", 3.075)
+@landmark("fir_tree")
 def _fir_tree(p: Parts) -> None:
     p.add(BARK, cylinder(0.28, 0.0, 1.3, sections=10))
     p.add("#1d5a2c", *tiered_crown([(2.1, 0.9, 2.4), (1.7, 2.2, 2.1), (1.3, 3.4, 1.9), (0.9, 4.6, 1.7)]))
@@ -475,7 +482,7 @@ def _fir_tree(p: Parts) -> None:
 _XMAS_TIERS = [(2.0, 0.8, 2.2), (1.55, 2.3, 1.9), (1.1, 3.5, 1.7)]
 
 
-@landmark("christmas_tree_1", "christmas tree", 3.125)
+@landmark("christmas_tree_1")
 def _christmas_tree_1(p: Parts) -> None:
     p.add(BARK, cylinder(0.25, 0.0, 1.0, sections=10))
     p.add("#2e8b3a", *tiered_crown(_XMAS_TIERS, sections=16))
@@ -488,7 +495,7 @@ def _christmas_tree_1(p: Parts) -> None:
     p.add(BLUE, block(0.5, 0.5, 0.4, -1.1, -0.7, 0.0))
 
 
-@landmark("christmas_tree_2", "christmas tree", 2.9)
+@landmark("christmas_tree_2")
 def _christmas_tree_2(p: Parts) -> None:
     p.add(RED, frustum(0.5, 0.7, 0.0, 0.7))
     p.add("#17805a", frustum(1.45, 0.0, 0.6, 5.0, sections=16))
@@ -510,19 +517,19 @@ def _trunk_line(n: int, top: Vec, bend: float = 1.0, base_z: float = 0.0) -> np.
     return np.column_stack([top[0] * t**bend, top[1] * t**bend, base_z + (top[2] - base_z) * t])
 
 
-@landmark("palm_tree_1", "palm tree", 3.35)
+@landmark("palm_tree_1")
 def _palm_tree_1(p: Parts) -> None:  # tall and straight, with coconuts
     palm(p, _trunk_line(8, (0.0, 0.0, 6.3)), radii=(0.3, 0.2), crown="#2e9e3e", fronds=9, length=2.5, width=0.5,
          lift=0.5, sag=1.1, fruit=WOOD_DARK)
 
 
-@landmark("palm_tree_2", "palm tree", 3.4)
+@landmark("palm_tree_2")
 def _palm_tree_2(p: Parts) -> None:  # curved, leaning trunk
     palm(p, _trunk_line(8, (1.5, 0.2, 6.0), bend=2.0), radii=(0.28, 0.18), crown="#1f7a36", fronds=7, length=2.3,
          width=0.55, lift=0.6, sag=1.3, yaw0=15.0, fruit=WOOD_DARK)
 
 
-@landmark("palm_tree_3", "palm tree", 3.475)
+@landmark("palm_tree_3")
 def _palm_tree_3(p: Parts) -> None:  # twin trunks from one root mound, light green
     p.add(WOOD, frustum(0.75, 0.45, 0.0, 0.4))
     for top, yaw0 in (((-0.9, 0.1, 5.6), 0.0), ((0.95, -0.1, 4.5), 22.0)):
@@ -530,7 +537,7 @@ def _palm_tree_3(p: Parts) -> None:  # twin trunks from one root mound, light gr
              length=1.7, width=0.42, lift=0.6, sag=1.2, yaw0=yaw0)
 
 
-@landmark("palm_tree_4", "palm tree", 3.15)
+@landmark("palm_tree_4")
 def _palm_tree_4(p: Parts) -> None:  # short, thick date palm with a dense crown and orange dates
     palm(p, _trunk_line(7, (0.0, 0.0, 3.0)), radii=(0.5, 0.38), crown="#4b9a26", fronds=14, length=2.05,
          width=0.45, lift=1.0, sag=1.25, fruit=ORANGE)
@@ -544,26 +551,26 @@ _BUSH_3 = [(0.0, 0.0, 1.0, 1.1), (0.0, 0.0, 2.0, 0.9), (0.9, 0.3, 0.9, 0.8), (-0
            (0.3, -0.9, 0.8, 0.75), (-0.4, 0.9, 0.8, 0.75), (0.2, 0.2, 2.7, 0.6)]
 
 
-@landmark("bush_1", "bush", 2.825)
+@landmark("bush_1")
 def _bush_1(p: Parts) -> None:
     p.add("#3fb03c", *blob_cluster(np.random.default_rng(101), _BUSH_1))
 
 
-@landmark("bush_2", "bush", 3.0)
+@landmark("bush_2")
 def _bush_2(p: Parts) -> None:
     rng = np.random.default_rng(102)
     p.add("#2d8c3c", *blob_cluster(rng, _BUSH_2))
     p.add(PINK, *dots_on(rng, _BUSH_2, 22, 0.13))
 
 
-@landmark("bush_3", "bush", 3.325)
+@landmark("bush_3")
 def _bush_3(p: Parts) -> None:
     rng = np.random.default_rng(103)
     p.add("#1e6a34", *blob_cluster(rng, _BUSH_3))
     p.add(RED, *dots_on(rng, _BUSH_3, 24, 0.11))
 
 
-@landmark("cactus", "cactus", 2.6)
+@landmark("cactus")
 def _cactus(p: Parts) -> None:
     green = "#239a58"
     p.add(SAND, frustum(1.0, 0.75, 0.0, 0.25))
@@ -575,7 +582,7 @@ def _cactus(p: Parts) -> None:
     p.add(PINK, sphere(0.16, (0, 0, 4.1)))
 
 
-@landmark("mushroom_1", "mushroom", 2.475)
+@landmark("mushroom_1")
 def _mushroom_1(p: Parts) -> None:
     z0, h = mushroom(p, 0.0, 0.0, 0.32, 1.3, 1.15, 0.85, RED, "#f3ead2")
     p.add("#f3ead2", frustum(0.3, 0.48, 0.95, 1.08))
@@ -586,14 +593,14 @@ def _mushroom_1(p: Parts) -> None:
         p.add(WHITE, sphere(0.14, (x, y, z), scale=(1, 1, 0.55)))
 
 
-@landmark("mushroom_2", "mushroom", 2.7)
+@landmark("mushroom_2")
 def _mushroom_2(p: Parts) -> None:
     for x, y, sr, sh, cr, ch in ((0.0, 0.0, 0.36, 1.2, 1.0, 0.75), (1.05, 0.35, 0.16, 0.55, 0.45, 0.35),
                                  (-0.95, -0.45, 0.19, 0.7, 0.52, 0.4)):
         mushroom(p, x, y, sr, sh, cr, ch, "#7b4a22", "#ece0c0")
 
 
-@landmark("pumpkin", "pumpkin", 2.375)
+@landmark("pumpkin")
 def _pumpkin(p: Parts) -> None:
     angles = np.radians(np.linspace(-80.0, 80.0, 9))
     profile = [(0.0, 0.08)] + [(math.cos(a), 0.66 + 0.6 * math.sin(a)) for a in angles] + [(0.0, 1.14)]
@@ -622,34 +629,34 @@ def _pumpkin(p: Parts) -> None:
 # ---- rocks ------------------------------------------------------------------------------------------
 
 
-@landmark("rock_1", "rock", 2.875)
+@landmark("rock_1")
 def _rock_1(p: Parts) -> None:
     rng = np.random.default_rng(11)
     p.add("#8a8d91", rock(rng, 1.3, (0, 0), (1.2, 1.0, 0.95)), rock(rng, 0.45, (1.3, 0.7), (1.0, 0.9, 0.8)))
 
 
-@landmark("rock_2", "rock", 3.25)
+@landmark("rock_2")
 def _rock_2(p: Parts) -> None:
     rng = np.random.default_rng(12)
     p.add("#c9803f", rock(rng, 2.0, (0, 0), (1.0, 0.8, 0.32), amp=0.12))
     p.add("#e0a35e", rock(rng, 1.3, (0.3, -0.1), (1.0, 0.85, 0.4), amp=0.14, lift=0.35))
 
 
-@landmark("rock_3", "rock", 3.025)
+@landmark("rock_3")
 def _rock_3(p: Parts) -> None:
     rng = np.random.default_rng(13)
     p.add("#4f5a66", rock(rng, 0.9, (0, 0), (1.0, 0.85, 2.3), amp=0.2, floor=-0.5),
           rock(rng, 0.6, (0.95, 0.4), (1.0, 0.8, 1.5), amp=0.2))
 
 
-@landmark("rock_4", "rock", 3.45)
+@landmark("rock_4")
 def _rock_4(p: Parts) -> None:
     rng = np.random.default_rng(14)
     p.add("#9a4b2c", rock(rng, 1.25, (0, 0), (1.1, 1.0, 0.9)), rock(rng, 0.9, (1.45, 0.5), (1.0, 1.0, 0.85)),
           rock(rng, 0.7, (-1.1, 1.05), (1.0, 0.9, 0.9)))
 
 
-@landmark("stone_circle", "stone circle", 3.575)
+@landmark("stone_circle")
 def _stone_circle(p: Parts) -> None:
     rng = np.random.default_rng(15)
     stones = []
@@ -670,7 +677,7 @@ def _stone_circle(p: Parts) -> None:
 # ---- buildings ----------------------------------------------------------------------------------------
 
 
-@landmark("house_1", "house", 3.7)
+@landmark("house_1")
 def _house_1(p: Parts) -> None:
     w, d, h = 3.8, 3.0, 2.6
     p.add("#f2efe6", block(w, d, h))
@@ -683,7 +690,7 @@ def _house_1(p: Parts) -> None:
           *windows("right", w / 2, d / 2, (0.0,), (1.1,), (0.8, 0.8)))
 
 
-@landmark("house_2", "house", 3.75)
+@landmark("house_2")
 def _house_2(p: Parts) -> None:
     w, d, h = 3.6, 3.0, 4.6
     p.add("#7fb3e0", block(w, d, h))
@@ -698,7 +705,7 @@ def _house_2(p: Parts) -> None:
     p.add(WHITE, block(w + 0.04, d + 0.04, 0.15, z=2.25))
 
 
-@landmark("house_3", "house", 3.6)
+@landmark("house_3")
 def _house_3(p: Parts) -> None:
     w, d, h = 3.2, 3.2, 2.5
     p.add("#f2c94c", block(w, d, h))
@@ -712,7 +719,7 @@ def _house_3(p: Parts) -> None:
           *windows("right", w / 2, d / 2, (-0.6, 0.6), (1.0,), (0.6, 0.7)))
 
 
-@landmark("wooden_house", "wooden house", 3.65)
+@landmark("wooden_house")
 def _wooden_house(p: Parts) -> None:
     w, d, r, rows = 3.7, 3.0, 0.16, 8
     h = 2 * r * rows
@@ -730,7 +737,7 @@ def _wooden_house(p: Parts) -> None:
     p.add(GREY, block(0.5, 0.5, 1.8, -1.2, 0.45, 3.0))
 
 
-@landmark("tower_1", "tower", 3.425)
+@landmark("tower_1")
 def _tower_1(p: Parts) -> None:
     stone = "#9b9b9b"
     p.add(stone, frustum(1.65, 1.4, 0.0, 0.6, sections=20), cylinder(1.4, 0.5, 5.6, sections=20),
@@ -743,7 +750,7 @@ def _tower_1(p: Parts) -> None:
     p.add(RED, block(0.8, 0.05, 0.5, 0.42, 0.0, 7.15))
 
 
-@landmark("tower_2", "tower", 3.375)
+@landmark("tower_2")
 def _tower_2(p: Parts) -> None:
     cream = "#e6d5b0"
     p.add(cream, block(2.3, 2.3, 0.6), block(2.0, 2.0, 5.4), block(2.3, 2.3, 0.25, z=5.2), block(2.1, 2.1, 1.4, z=5.45))
@@ -758,7 +765,7 @@ def _tower_2(p: Parts) -> None:
               place(block(0.34, 0.04, 0.07, 0.15, -1.13, -0.03), (0, 0, 6.15), rz=a))
 
 
-@landmark("lighthouse", "lighthouse", 3.225)
+@landmark("lighthouse")
 def _lighthouse(p: Parts) -> None:
     p.add(GREY, frustum(1.3, 1.2, 0.0, 0.5, sections=8))
     zs = np.linspace(0.5, 6.1, 6)
@@ -771,7 +778,7 @@ def _lighthouse(p: Parts) -> None:
     p.add(BLACK, panel("front", 1.0, 0.98, 0.0, 0.5, 0.6, 1.2, proud=0.08))
 
 
-@landmark("windmill", "windmill", 3.625)
+@landmark("windmill")
 def _windmill(p: Parts) -> None:
     p.add(WHITE, frustum(1.6, 1.0, 0.0, 4.8, sections=8))
     p.add("#b33a2e", lathe([(0.0, 4.75), (1.15, 4.75), (1.05, 5.3), (0.6, 5.8), (0.0, 5.95)], sections=12))
@@ -786,7 +793,7 @@ def _windmill(p: Parts) -> None:
         p.add(LIGHT_GREY, slab(hub + 0.55 * u + 0.3 * side, hub + 2.6 * u + 0.3 * side, 0.5, 0.05, normal=(0, 1, 0)))
 
 
-@landmark("water_tower", "water tower", 3.525)
+@landmark("water_tower")
 def _water_tower(p: Parts) -> None:
     legs = []
     for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1)):
@@ -800,7 +807,7 @@ def _water_tower(p: Parts) -> None:
     p.add("#c0392b", frustum(1.7, 0.0, 6.7, 7.6, sections=20), sphere(0.12, (0, 0, 7.65)))
 
 
-@landmark("igloo", "igloo", 3.175)
+@landmark("igloo")
 def _igloo(p: Parts) -> None:
     ice = "#eaf4fb"
     angles = np.radians(np.linspace(0.0, 90.0, 9))
@@ -811,7 +818,7 @@ def _igloo(p: Parts) -> None:
     p.add("#263646", extrude_y(half_disc(0.5, 8) * (1, 1.2), -2.5, -2.4))
 
 
-@landmark("tent", "tent", 3.275)
+@landmark("tent")
 def _tent(p: Parts) -> None:
     p.add(DARK_GREY, block(3.8, 3.1, 0.04))
     p.add(PURPLE, extrude_x([(-1.45, 0.0), (1.45, 0.0), (0.0, 2.2)], -1.8, 1.8))
@@ -821,7 +828,7 @@ def _tent(p: Parts) -> None:
           *[cylinder(0.04, 0.0, 2.2, 1.85 * s, 0.0, 6) for s in (-1, 1)])
 
 
-@landmark("phone_booth", "phone booth", 2.5)
+@landmark("phone_booth")
 def _phone_booth(p: Parts) -> None:
     red = "#c8102e"
     p.add(red, block(1.2, 1.2, 0.15), block(1.1, 1.1, 2.55), block(1.2, 1.2, 0.12, z=2.55),
@@ -834,7 +841,7 @@ def _phone_booth(p: Parts) -> None:
     p.add(GOLD, block(0.18, 0.18, 0.22, z=3.05))
 
 
-@landmark("well_1", "well", 3.3)
+@landmark("well_1")
 def _well_1(p: Parts) -> None:
     p.add("#8d8f93", ring(0.95, 1.35, 0.0, 0.95))
     p.add(LIGHT_GREY, ring(0.9, 1.4, 0.95, 1.05))
@@ -844,7 +851,7 @@ def _well_1(p: Parts) -> None:
     p.add(DARK_GREY, rod((0, 0, 1.9), (0, 0, 1.35), 0.02, 4), frustum(0.18, 0.23, 1.05, 1.35))
 
 
-@landmark("well_2", "well", 3.1)
+@landmark("well_2")
 def _well_2(p: Parts) -> None:
     brick = "#b5482e"
     p.add(brick, block(2.2, 0.35, 1.0, 0, -0.925), block(2.2, 0.35, 1.0, 0, 0.925), block(0.35, 1.5, 1.0, -0.925),
@@ -857,7 +864,7 @@ def _well_2(p: Parts) -> None:
     p.add(DARK_GREY, rod((0, 0, 3.1), (0, 0, 2.1), 0.02, 4), frustum(0.2, 0.26, 1.7, 2.1))
 
 
-@landmark("pyramid", "pyramid", 3.75)
+@landmark("pyramid")
 def _pyramid(p: Parts) -> None:
     p.add(SAND, place(creation.cone(radius=2.85, height=3.3, sections=4), rz=45.0))
     p.add(GOLD, place(creation.cone(radius=0.47, height=0.545, sections=4), (0, 0, 2.779), rz=45.0))
@@ -867,7 +874,7 @@ def _pyramid(p: Parts) -> None:
                           normal=(0.0, -height, half)))
 
 
-@landmark("arch", "arch", 3.675)
+@landmark("arch")
 def _arch(p: Parts) -> None:
     stone, light = "#b8563c", "#d07a5a"
     p.add(stone, *[block(0.8, 0.8, 3.0, x, 0.0, 0.0) for x in (-1.8, 1.8)])
@@ -881,7 +888,7 @@ def _arch(p: Parts) -> None:
     p.add(light, block(0.6, 0.9, 0.95, 0.0, 0.0, 4.3))
 
 
-@landmark("column", "column", 2.775)
+@landmark("column")
 def _column(p: Parts) -> None:
     marble = "#ede6d6"
     p.add(marble, block(1.6, 1.6, 0.35), frustum(0.78, 0.66, 0.35, 0.6, sections=24),
@@ -889,7 +896,7 @@ def _column(p: Parts) -> None:
           block(1.7, 1.7, 0.3, z=5.5))
 
 
-@landmark("fountain", "fountain", 3.55)
+@landmark("fountain")
 def _fountain(p: Parts) -> None:
     stone = "#d6d0c4"
     p.add(stone, ring(2.0, 2.35, 0.0, 0.6, sections=24), cylinder(0.3, 0.4, 1.6), cylinder(0.15, 1.8, 2.35),
@@ -901,7 +908,7 @@ def _fountain(p: Parts) -> None:
           *[rod((px, py, 1.92), (1.45 * px, 1.45 * py, 0.45), 0.05, 6) for px, py, _ in arc_points(8, 1.0, (0, 0), 0)])
 
 
-@landmark("statue", "statue", 2.85)
+@landmark("statue")
 def _statue(p: Parts) -> None:
     stone, copper = "#a9a59b", "#45b08c"
     p.add(stone, block(1.6, 1.6, 0.3), block(1.3, 1.3, 1.6, z=0.3), block(1.5, 1.5, 0.2, z=1.8))
@@ -913,7 +920,7 @@ def _statue(p: Parts) -> None:
     p.add(GOLD, rod((0.42, 0, 5.05), (0.44, 0, 5.35), 0.1), frustum(0.14, 0.0, 5.35, 5.7, 0.44, 0.0, sections=10))
 
 
-@landmark("totem_pole", "totem pole", 2.8)
+@landmark("totem_pole")
 def _totem_pole(p: Parts) -> None:
     segments = [("#8a5a33", 0.0, 1.3, 0.5), ("#c0392b", 1.3, 2.5, 0.48), ("#1f9e9e", 2.5, 3.7, 0.5),
                 (YELLOW, 3.7, 4.9, 0.46)]
@@ -931,20 +938,20 @@ def _totem_pole(p: Parts) -> None:
 # ---- objects ----------------------------------------------------------------------------------------------
 
 
-@landmark("barrel_1", "barrel", 2.425)
+@landmark("barrel_1")
 def _barrel_1(p: Parts) -> None:
     p.add("#a0622d", barrel_body(0.8, 1.9, 0.12))
     p.add("#2e2e2e", *hoops(0.8, 1.9, 0.12, (0.25, 0.6, 1.3, 1.65), 0.09))
 
 
-@landmark("barrel_2", "barrel", 2.45)
+@landmark("barrel_2")
 def _barrel_2(p: Parts) -> None:
     p.add(BLUE, barrel_body(0.72, 2.0))
     p.add("#164aa3", *hoops(0.72, 2.0, 0.0, (0.67, 1.33), 0.08), cylinder(0.74, 1.94, 2.0, sections=20))
     p.add(LIGHT_GREY, cylinder(0.09, 2.0, 2.06, 0.4, 0.0, 8))
 
 
-@landmark("barrel_3", "barrel", 2.675)
+@landmark("barrel_3")
 def _barrel_3(p: Parts) -> None:
     body = barrel_body(0.75, 2.0)
     bands = hoops(0.75, 2.0, 0.0, (1.0,), 0.35, proud=0.02)
@@ -953,14 +960,14 @@ def _barrel_3(p: Parts) -> None:
     p.add(WOOD, *[block(1.7, 0.3, 0.32, 0.0, y, 0.0) for y in (-0.6, 0.6)])
 
 
-@landmark("red_barrel", "red barrel", 2.4)
+@landmark("red_barrel")
 def _red_barrel(p: Parts) -> None:
     p.add(RED, barrel_body(0.78, 2.1))
     p.add(WHITE, *hoops(0.78, 2.1, 0.0, (0.65, 1.45), 0.16, proud=0.015))
     p.add(DARK_GREY, cylinder(0.8, 2.04, 2.1, sections=20), cylinder(0.8, 0.0, 0.06, sections=20))
 
 
-@landmark("box_1", "box", 2.625)
+@landmark("box_1")
 def _box_1(p: Parts) -> None:
     s, t = 1.8, 0.16
     p.add(WOOD_LIGHT, block(s, s, s))
@@ -979,7 +986,7 @@ def _box_1(p: Parts) -> None:
     p.add("#7a5126", *frame)
 
 
-@landmark("box_2", "box", 2.65)
+@landmark("box_2")
 def _box_2(p: Parts) -> None:
     sx, sy, sz = 1.9, 1.5, 1.4
     cardboard = "#c9a46a"
@@ -993,7 +1000,7 @@ def _box_2(p: Parts) -> None:
     p.add("#9a7440", block(0.3, sy + 0.02, 0.55, 0, 0, sz - 0.55))
 
 
-@landmark("container", "container", 3.725)
+@landmark("container")
 def _container(p: Parts) -> None:
     sx, sy, sz = 5.0, 2.2, 2.4
     p.add("#1b7f8a", block(sx, sy, sz))
@@ -1005,19 +1012,19 @@ def _container(p: Parts) -> None:
           panel("back", sx / 2, sy / 2, 0.8, 1.5, 2.0, 0.5, proud=0.07))
 
 
-@landmark("cone_1", "cone", 2.725)
+@landmark("cone_1")
 def _cone_1(p: Parts) -> None:
     p.add(CYAN, frustum(1.15, 0.0, 0.0, 3.6, sections=24))
 
 
-@landmark("cone_2", "cone", 2.75)
+@landmark("cone_2")
 def _cone_2(p: Parts) -> None:
     r, h = 1.45, 2.7
     p.add(MAGENTA, frustum(r, 0.0, 0.0, h, sections=8))
     p.add(WHITE, frustum(r * (1 - 1.0 / h) + 0.02, r * (1 - 1.35 / h) + 0.02, 1.0, 1.35, sections=8))
 
 
-@landmark("traffic_cone", "traffic cone", 2.25)
+@landmark("traffic_cone")
 def _traffic_cone(p: Parts) -> None:
     p.add(BLACK, block(1.2, 1.2, 0.12))
     radius = lambda z: 0.55 - 0.45 * (z - 0.12) / 1.63
@@ -1025,13 +1032,13 @@ def _traffic_cone(p: Parts) -> None:
     p.add(WHITE, *[frustum(radius(a) + 0.012, radius(b) + 0.012, a, b) for a, b in ((0.7, 0.95), (1.15, 1.35))])
 
 
-@landmark("tire_stack", "tire stack", 2.325)
+@landmark("tire_stack")
 def _tire_stack(p: Parts) -> None:
     p.add("#1e1e1e", *[torus(0.55, 0.24, (0, 0, 0.24 + 0.46 * k), 20, 8) for k in range(5)])
     p.add("#6d6d6d", cylinder(0.36, 0.0, 2.1, sections=12))
 
 
-@landmark("hay_bale", "hay bale", 2.975)
+@landmark("hay_bale")
 def _hay_bale(p: Parts) -> None:
     hay, dark = "#e8c868", "#b98f34"
     p.add(hay, rod((0, -0.95, 1.05), (0, 0.95, 1.05), 1.05, 24))
@@ -1043,7 +1050,7 @@ def _hay_bale(p: Parts) -> None:
     p.add(dark, *[rod((0, y - 0.04, 1.05), (0, y + 0.04, 1.05), 1.075, 24) for y in (-0.55, 0.0, 0.55)])
 
 
-@landmark("anvil", "anvil", 2.35)
+@landmark("anvil")
 def _anvil(p: Parts) -> None:
     p.add("#8b5a2b", cylinder(0.55, 0.0, 0.75, sections=16))
     iron = "#3c4048"
@@ -1053,7 +1060,7 @@ def _anvil(p: Parts) -> None:
           loft(rect(0.25, 0.55, -0.725), 1.35, rect(0.25, 0.35, -0.725), 1.55))
 
 
-@landmark("globe", "globe", 2.55)
+@landmark("globe")
 def _globe(p: Parts) -> None:
     brass, centre = "#c9a227", np.array([0.0, 0.0, 1.97])
     p.add(brass, cylinder(0.65, 0.0, 0.15, sections=20), frustum(0.12, 0.08, 0.15, 0.9, sections=10))
@@ -1074,7 +1081,7 @@ def _globe(p: Parts) -> None:
         p.add(colour, _mesh(verts, faces))
 
 
-@landmark("snowman", "snowman", 2.525)
+@landmark("snowman")
 def _snowman(p: Parts) -> None:
     p.add("#f7f9fc", *[sphere(r, (0, 0, z), sub=2) for r, z in ((0.8, 0.75), (0.58, 1.85), (0.42, 2.65))])
     p.add(BLACK, cylinder(0.48, 2.98, 3.04, sections=16), cylinder(0.3, 3.0, 3.5, sections=16),
@@ -1090,7 +1097,7 @@ def _snowman(p: Parts) -> None:
     p.add(WOOD_DARK, *arms)
 
 
-@landmark("gorilla", "gorilla", 2.95)
+@landmark("gorilla")
 def _gorilla(p: Parts) -> None:
     fur, skin, silver = "#26262b", "#5e5a63", "#8d8d94"
     p.add(fur, place(sphere(1.0, sub=2, scale=(0.85, 0.7, 1.0)), (0, 0.1, 1.75), rx=-15.0),
@@ -1109,7 +1116,7 @@ def _gorilla(p: Parts) -> None:
     p.add(WHITE, *[sphere(0.06, (s * 0.17, -0.96, 2.76), sub=0) for s in (-1, 1)])
 
 
-@landmark("stop_sign", "stop sign", 2.3)
+@landmark("stop_sign")
 def _stop_sign(p: Parts) -> None:
     zc = 2.75
     p.add(GREY, cylinder(0.07, 0.0, zc, sections=10))
@@ -1121,7 +1128,7 @@ def _stop_sign(p: Parts) -> None:
                    for m in seven_segment(ch, x0 + k * (w + gap), zc - h / 2, w, h, 0.055, -0.055)])
 
 
-@landmark("street_lamp", "street lamp", 2.575)
+@landmark("street_lamp")
 def _street_lamp(p: Parts) -> None:
     iron = "#1f2a24"
     p.add(iron, frustum(0.35, 0.2, 0.0, 0.6), cylinder(0.1, 0.6, 4.3, sections=10), sphere(0.14, (0, 0, 4.35)),
@@ -1131,7 +1138,7 @@ def _street_lamp(p: Parts) -> None:
     p.add("#ffe45c", *[frustum(0.17, 0.28, 4.05, 4.57, x, 0.0, sections=8) for x in (-0.9, 0.9)])
 
 
-@landmark("mailbox", "mailbox", 2.275)
+@landmark("mailbox")
 def _mailbox(p: Parts) -> None:
     p.add("#7b5233", block(0.2, 0.2, 1.45), block(0.45, 0.8, 0.06, z=1.44))
     blue = "#2a4d9b"
@@ -1140,7 +1147,7 @@ def _mailbox(p: Parts) -> None:
     p.add(RED, block(0.05, 0.05, 0.6, 0.33, 0.25, 1.6), block(0.05, 0.32, 0.2, 0.33, 0.1, 2.0))
 
 
-@landmark("bench", "bench", 2.925)
+@landmark("bench")
 def _bench(p: Parts) -> None:
     wood, iron = "#c2652a", "#232323"
     p.add(wood, *[block(3.6, 0.26, 0.08, 0.0, y, 0.72) for y in (-0.32, 0.0, 0.32)])
@@ -1154,7 +1161,7 @@ def _bench(p: Parts) -> None:
     p.add(iron, *frame)
 
 
-@landmark("satellite_dish", "satellite dish", 3.05)
+@landmark("satellite_dish")
 def _satellite_dish(p: Parts) -> None:
     grey = "#7d838b"
     p.add(grey, block(1.2, 1.2, 0.35), cylinder(0.16, 0.35, 2.05, sections=12), block(0.4, 0.4, 0.3, z=1.9))
@@ -1172,7 +1179,7 @@ def _satellite_dish(p: Parts) -> None:
 # ---- vehicles ---------------------------------------------------------------------------------------------
 
 
-@landmark("car", "car", 3.2)
+@landmark("car")
 def _car(p: Parts) -> None:
     body = "#f6c70f"
     p.add(body, block(4.0, 1.8, 0.65, z=0.35), block(1.34, 1.44, 0.06, -0.3, 0.0, 1.6))
@@ -1184,7 +1191,7 @@ def _car(p: Parts) -> None:
     p.add(RED, *[block(0.06, 0.35, 0.15, -2.01, y, 0.75) for y in (-0.6, 0.6)])
 
 
-@landmark("tank", "tank", 3.75)
+@landmark("tank")
 def _tank(p: Parts) -> None:
     olive, dark = "#5b6e2d", "#4b5a24"
     p.add(olive, block(4.0, 1.9, 0.5, z=0.35), loft(rect(4.2, 2.5), 0.85, rect(3.6, 2.2), 1.25))
@@ -1197,7 +1204,7 @@ def _tank(p: Parts) -> None:
     p.add(WHITE, extrude_y(star_polygon(5, 0.2, 0.08, centre=(-0.2, 1.5)), -0.97, -0.9))
 
 
-@landmark("boat", "boat", 3.5)
+@landmark("boat")
 def _boat(p: Parts) -> None:
     keel = [(-1.9, -0.25), (1.1, -0.25), (2.0, 0.0), (1.1, 0.25), (-1.9, 0.25)]
     water = [(-2.2, -0.8), (1.0, -0.8), (2.4, 0.0), (1.0, 0.8), (-2.2, 0.8)]
@@ -1219,9 +1226,12 @@ def _boat(p: Parts) -> None:
 # Public catalogue.
 # ==================================================================================================
 
-CATALOGUE: tuple[LandmarkModel, ...] = tuple(_REGISTRY)
+_UNPAIRED = sorted(set(_BUILDERS) ^ {c.name for c in CLASSES})
+if _UNPAIRED:
+    raise RuntimeError(f"landmarks without a builder or builders without a catalogue entry: {_UNPAIRED}")
+CATALOGUE: tuple[LandmarkModel, ...] = tuple(
+    LandmarkModel(c.name, c.noun_phrase, c.radius, functools.partial(_run, _BUILDERS[c.name])) for c in CLASSES)
 _BY_NAME: dict[str, LandmarkModel] = {m.name: m for m in CATALOGUE}
-NOUN_PHRASES: tuple[str, ...] = tuple(sorted({m.noun_phrase for m in CATALOGUE}))
 
 
 def model_by_name(name: str) -> LandmarkModel:

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from gsmn.config import WorldConfig
-from gsmn.world.landmarks import CATALOGUE
+from gsmn.world.catalogue import CATALOGUE
 
 SPLITS = ("train", "test", "dev")
 

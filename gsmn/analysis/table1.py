@@ -1,18 +1,11 @@
-"""The paper's Table 1 as markdown, from `gsmn eval --json` files, beside the paper's figures.
-
-    python scripts/results_table.py runs/eval_gsmn.json runs/eval_oracle.json ... [--label gsmn="GSMN (...)"]
+"""The paper's Table 1 as markdown, from `gsmn eval --json` files, beside the paper's figures (`gsmn analyze table1`).
 
 Each file gives one row: success, landmark success, mean and median distance to the goal, and in brackets the
-same on the pruned (unambiguous) subset. Files must cover the same environments; the script refuses a mix,
-because the rows of one table have to be comparable.
+same on the pruned (unambiguous) subset. Files must cover the same environments: the rows of one table have to be
+comparable, so a mix is refused.
 """
 
 from __future__ import annotations
-
-import argparse
-import json
-import sys
-from pathlib import Path
 
 # The paper's Table 1: (success, landmark success, mean distance, median distance), pruned in the second tuple.
 PAPER = {
@@ -45,7 +38,12 @@ def _paper(system: str, i: int) -> str:
 
 
 def table(results: list[dict], labels: dict[str, str], files: list[str] | None = None) -> str:
-    """One row per result; a row is named by labels[its file] or labels[its system], else the system's name."""
+    """One row per result; a row is named by labels[its file] or labels[its system], else the system's name.
+    ValueError if the results cover different environments."""
+    if len({tuple(r["env_ids"]) for r in results}) != 1:
+        counts = ", ".join(f"{f}: {len(r['env_ids'])}" for f, r in zip(files or range(len(results)), results,
+                                                                        strict=True))
+        raise ValueError(f"the files cover different environments ({counts}); evaluate them on the same ones")
     header = ("| system | success % (ours) | success % (paper) | landmark % (ours) | landmark % (paper) "
               "| mean dist m (ours) | mean (paper) | median m (ours) | median (paper) |")
     lines = [header, "|" + "---|" * 9]
@@ -56,25 +54,3 @@ def table(results: list[dict], labels: dict[str, str], files: list[str] | None =
             cells += [_ours(r["summary"], i), _paper(system, i)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("files", nargs="+", type=Path, help="gsmn eval --json outputs, one row each, in order")
-    parser.add_argument("--label", action="append", default=[], metavar="SYSTEM_OR_FILE=TEXT",
-                        help="the row name for a system or for one file (e.g. gsmn='GSMN (20 epochs)')")
-    args = parser.parse_args(argv)
-    labels = dict(item.split("=", 1) for item in args.label)
-    results = [json.loads(f.read_text()) for f in args.files]
-    envs = {tuple(r["env_ids"]) for r in results}
-    if len(envs) != 1:
-        counts = ", ".join(f"{f}: {len(r['env_ids'])}" for f, r in zip(args.files, results, strict=True))
-        print(f"the files cover different environments ({counts}); evaluate them on the same ones",
-              file=sys.stderr)
-        return 2
-    print(table(results, labels, [str(f) for f in args.files]))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,17 +1,15 @@
-"""Failure attribution over a whole `gsmn eval` run: each failed episode traced to the first stage the model got
-wrong (gsmn/attribution.py), and the counts; the control failures also by how the drone missed the goal peak;
-how many episodes stopped by itself and how many ended outside the field.
+"""Failure attribution over a whole `gsmn eval` run (`gsmn attribute`): each failed episode traced to the first stage
+the model got wrong (gsmn/attribution.py), and the counts; the control failures also by how the drone missed the
+goal peak; how many episodes stopped by itself and how many ended outside the field.
 
     gsmn eval --system gsmn --split test --episodes 500 --json runs/eval.json --record runs/eval_rec
-    .venv/bin/python scripts/attribution_counts.py runs/eval.json runs/eval_rec [--checkpoint checkpoints/gsmn]
+    gsmn attribute runs/eval.json runs/eval_rec [--checkpoint checkpoints/gsmn]
 
 The checkpoint defaults to the one the evaluation names (or checkpoints/gsmn); its heads read the recorded maps.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -26,18 +24,17 @@ from gsmn.attribution import (
     trace_path,
 )
 from gsmn.config import RunConfig
+from gsmn.evaluation import checkpoint_path
 from gsmn.model.checkpoint import load_checkpoint
 from gsmn.task.metrics import landmark_success
 from gsmn.world.spec import on_field, world_for_env
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def failed_attributions(results: dict, recordings: Path, checkpoint: Path | None = None) -> list[Attribution | None]:
     """The attribution of every failed episode of an evaluation (None where it has no recording).
 
     The checkpoint defaults to the one the evaluation names (or checkpoints/gsmn)."""
-    checkpoint = checkpoint or Path(results.get("checkpoint") or ROOT / "checkpoints" / "gsmn")
+    checkpoint = checkpoint or checkpoint_path("gsmn", results.get("checkpoint"))
     model, *_ = load_checkpoint(checkpoint)
     heads = Heads.of(model)
     config = RunConfig.from_dict(results["config"])
@@ -109,19 +106,15 @@ def ended_outside(results: dict) -> int:
     return sum(not on_field(r["final_x"], r["final_y"], size) for r in results["episodes"])
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", type=Path, help="gsmn eval --json output")
-    ap.add_argument("recordings", type=Path, help="the same evaluation's --record folder")
-    ap.add_argument("--checkpoint", type=Path, default=None)
-    args = ap.parse_args(argv)
-    results = json.loads(args.results.read_text())
-    found = failed_attributions(results, args.recordings, args.checkpoint)
+def print_report(results: dict, recordings: Path, checkpoint: Path | None = None) -> None:
+    """The counts of an evaluation's failures by stage, and how its episodes ended, as `gsmn attribute` prints them
+    (failures without a recording are counted on stderr)."""
+    found = failed_attributions(results, recordings, checkpoint)
     counts, missing = _tally(found)
     failures = sum(1 for r in results["episodes"] if not r["success"])
     stopped_steps = [r["steps"] for r in results["episodes"] if r["stopped"]]
     print(f"{failures} failures of {len(results['episodes'])} episodes "
-          f"({args.checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
+          f"({checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
     ambiguous = ambiguous_counts(results, found)
     for stage in reported_stages(counts):
         print(f"  {STAGE_TITLES[stage]:<15} {counts[stage]}  ({ambiguous.get(stage, 0)} with an ambiguous instruction)")
@@ -139,8 +132,3 @@ def main(argv: list[str] | None = None) -> int:
         succeeded = sum(bool(r["success"]) for r in results["episodes"] if r.get("ambiguous"))
         print(f"{ambiguous} ambiguous episodes ({succeeded} succeeded) ended near "
               + ", ".join(f"{where} {n}" for where, n in endings.items()))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

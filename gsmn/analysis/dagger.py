@@ -1,10 +1,7 @@
-"""DAggerFM runs side by side, an iteration a row: beta, the dev figures, and how many of the iteration's own
-rollouts succeeded and were cut (the table of docs/training.md's DAggerFM sections); with --dataset, what each
-run's dataset holds now.
+"""DAggerFM runs side by side, an iteration a row (`gsmn analyze dagger`): beta, the dev figures, and how many of the
+iteration's own rollouts succeeded and were cut; with `dataset`, what each run's dataset holds now.
 
-    python scripts/dagger_rows.py runs/gs-fpv-mem_dagger_s28 runs/gs-fpv_dagger_s28 --dataset
-
-Reads RUN/log.jsonl (one record per iteration) and, with --dataset, the episodes in RUN/dataset: how many came from
+Reads RUN/log.jsonl (one record per iteration) and, with `dataset`, the episodes in RUN/dataset: how many came from
 the expert store and how many are rollouts; of the rollouts (by their metadata) how many succeeded, were cut for
 straying from the path, or neither (or were flown before rollouts kept their outcome), and in each group how many
 carry an expert STOP label at all (a failed one that does flew on past the place where the expert said STOP).
@@ -12,7 +9,6 @@ carry an expert STOP label at all (a failed one that does flew on past the place
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -42,7 +38,7 @@ def dataset_summary(run: Path) -> str:
         if "iteration" not in meta:  # an episode of the expert store
             expert += 1
             continue
-        if "success" not in meta:  # flown before rollouts kept their outcome (2026-11-29)
+        if "success" not in meta:  # flown before rollouts kept their outcome
             group = "not scored"
         else:
             group = "succeeded" if meta["success"] else "failed and cut" if meta["cut"] else "failed, not cut"
@@ -54,32 +50,23 @@ def dataset_summary(run: Path) -> str:
                         if n or name != "not scored"))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", nargs="+", type=Path, help="DAggerFM run folders")
-    parser.add_argument("--first", type=int, default=1, help="first iteration to print")
-    parser.add_argument("--dataset", action="store_true", help="also summarise each run's dataset")
-    args = parser.parse_args()
-    logs = [{int(r["iteration"]): r for r in RunFolder(run).read_log()} for run in args.runs]
-    n_d = [json.loads((r / "config.json").read_text())["dagger"]["rollouts_per_iteration"] for r in args.runs]
+def dagger_table(runs: list[Path], first: int = 1, dataset: bool = False) -> str:
+    """The runs' iterations from `first` on, a row each (markdown); with `dataset`, a line per run's dataset."""
+    logs = [{int(r["iteration"]): r for r in RunFolder(run).read_log()} for run in runs]
+    n_d = [json.loads((r / "config.json").read_text())["dagger"]["rollouts_per_iteration"] for r in runs]
     head = ["iteration", "beta"]
-    for r in args.runs:
+    for r in runs:
         name = r.name.split("_dagger")[0]
         head += [f"{name} dev action loss", "perception", "grounding", "instr. landmark", "rollouts succeeded / cut"]
-    print("| " + " | ".join(head) + " |")
-    print("|" + "---|" * len(head))
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i in sorted(set().union(*logs)):
-        if i < args.first:
+        if i < first:
             continue
         beta = next(log[i]["beta"] for log in logs if i in log)
         row = [str(i), f"{beta:.4g}"]
         for log, n in zip(logs, n_d, strict=True):
             row += cells(log.get(i), n)
-        print("| " + " | ".join(row) + " |")
-    if args.dataset:
-        for r in args.runs:
-            print(dataset_summary(r))
-
-
-if __name__ == "__main__":
-    main()
+        lines.append("| " + " | ".join(row) + " |")
+    if dataset:
+        lines += [dataset_summary(r) for r in runs]
+    return "\n".join(lines)

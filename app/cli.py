@@ -1,0 +1,56 @@
+"""`gsmn serve`: the dashboard's subcommand, registered with the `gsmn` command line through the entry-point group
+`gsmn.commands` (pyproject.toml), so that the library (gsmn/) never imports the app."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from gsmn.cli import add_config_arguments, config_from_args
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `serve` to the `gsmn` subcommands."""
+    p = subparsers.add_parser("serve", help="serve the dashboard: the browser view (viser) and the HTTP API (FastAPI)")
+    p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
+                   "when it exists; without one the expert flies and the page says so)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind both servers (default: loopback only; "
+                   "neither has authentication)")
+    p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
+    p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
+    p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
+    p.add_argument("--data-dir", default="data/dashboard", help="evaluations, fine-tuning runs and their records "
+                   "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
+    p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
+    p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import time
+
+    from app.server import Dashboard
+
+    config = config_from_args(args)
+    try:
+        dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
+                              api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
+                              max_runs=args.max_runs, max_evaluations=args.max_evaluations)
+    except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
+        print(f"gsmn serve: error: {e}", file=sys.stderr)
+        return 2
+    urls = dashboard.urls
+    print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
+    moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
+    print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
+    print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
+    print(f"data: {dashboard.jobs.describe()}", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        dashboard.close()
+    return 0
