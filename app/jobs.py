@@ -4,6 +4,8 @@
     run:         gsmn collect (the expert demonstrations DAggerFM's dataset starts from, when missing)
                  && gsmn train dagger --init C --data STORE --run DIR [--env-ids ...] (paper: Algorithm 1)
 
+each with `--config FOLDER/config.json`: the configuration the job runs with, saved in its folder when it starts.
+
 Both write machine-readable progress (the evaluation one JSON line per episode; the run its folder's log.jsonl,
 state and progress.json), and one monitor thread in the server reads it and records it in the SQLite database
 (`app.db`): status (queued, running, finished, failed, cancelled), progress, metrics so far, the checkpoint when
@@ -38,7 +40,7 @@ from pathlib import Path
 from app.commands import NotFound, RunnerError
 from app.db import FINISHED, Database, Evaluation, Run
 from app.results import EpisodeRecorder, compare, summarize_rows
-from app.run_settings import RunSettings, config_args, expert_store_key, run_config
+from app.run_settings import RunSettings, expert_store_key, run_config
 from app.supervisor import Handle, Supervisor, alive
 from gsmn.config import RunConfig
 
@@ -141,7 +143,7 @@ class JobManager:
                        *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
                        "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
                        "--record", str(folder / "episodes"), "--progress", str(folder / "progress.jsonl"),
-                       "--json", str(folder / "results.json"), *config_args(self.config),
+                       "--json", str(folder / "results.json"), "--config", str(folder / "config.json"),
                        *(["--mirror-ensemble"] if mirror_ensemble else [])]
             self.supervisor.launch("evaluation", eid, folder, command)
         return self.db.evaluation(eid)
@@ -198,7 +200,9 @@ class JobManager:
     def start_run(self, settings: RunSettings, checkpoint: str | None = None, env_ids: list[int] | None = None,
                   evaluation_id: int | None = None) -> Run:
         """Launch DAggerFM from a checkpoint on the train split, on `env_ids`, or on the failures of
-        `evaluation_id` (when env_ids is not given)."""
+        `evaluation_id` (when env_ids is not given). The job's folder keeps the run's configuration (config.json),
+        which both of its commands start from."""
+        config = run_config(self.config, settings)
         init = self.resolve_checkpoint(checkpoint)
         kind = _checkpoint_kind(init)
         if kind not in ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem"):
@@ -215,7 +219,6 @@ class JobManager:
                 raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids")
         if settings.expert_data is not None and not Path(settings.expert_data).is_dir():
             raise RunnerError(f"expert_data {settings.expert_data} is not an episode store folder")
-        config = run_config(self.config, settings)
         with self.supervisor.lock:
             self.supervisor.check_limit("run", self.max_runs, "--max-runs")
             rid = self.db.add_run(settings=settings.to_dict(), env_ids=env_ids, init_checkpoint=str(init),
@@ -223,6 +226,7 @@ class JobManager:
             folder = self.root / "runs" / f"{rid:04d}"
             folder.mkdir(parents=True, exist_ok=True)
             self.db.update_run(rid, folder=str(folder))
+            (folder / "config.json").write_text(config.to_json() + "\n")
             # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
             # chosen environments, in the run's folder; else the train split's, shared by runs with the same settings
             if settings.expert_data:
@@ -231,7 +235,7 @@ class JobManager:
                 store = folder / "expert"
             else:
                 store = self.root / "expert" / expert_store_key(config)
-            flags = config_args(config)
+            flags = ["--config", str(folder / "config.json")]
             parts = []
             if settings.expert_data is None:
                 from gsmn.world.spec import split_env_ids
@@ -352,45 +356,30 @@ class JobManager:
 # -- reading a run's folder ---------------------------------------------------------------------------------------
 def run_progress(folder: Path, row: Run) -> tuple[dict, list[dict]]:
     """Where a run is (phase, iteration, overall fraction, a line for people) and its per-iteration log so far,
-    from its folder: the expert store while collecting, then the run folder's log.jsonl, state and progress.json."""
-    from gsmn.training.run import RunFolder
+    from its folder: the expert store while collecting, then what the trainer reports (`read_progress`)."""
+    from gsmn.training.run import read_progress
 
     iterations = int(row.settings["iterations"])
-    run = RunFolder(folder / "run")
-    metrics = run.read_log() if run.log_path.is_file() else []
-    done = len(metrics)
-    if not (run.root / "config.json").is_file():
+    p = read_progress(folder / "run", iterations)
+    if p is None:
         return {"phase": "expert data", "iteration": 0, "iterations": iterations, "fraction": 0.0,
-                "text": "collecting the expert demonstrations the dataset starts from"}, metrics
-    p = _read_json(run.root / "progress.json") or {}
-    within, text = 0.0, f"iteration {min(done + 1, iterations)} of {iterations}"
-    phase = p.get("phase")
-    if phase == "collect" and p.get("rollouts"):
-        within = 0.5 * p.get("done", 0) / p["rollouts"]
-        text += f": rollouts {p.get('done', 0)}/{p['rollouts']} (beta {p.get('beta', 0):.2f})"
-    elif phase == "train" and p.get("batches"):
-        within = 0.5 + 0.5 * p.get("batch", 0) / p["batches"]
-        text += f": training, batch {p.get('batch', 0)}/{p['batches']}"
-        if p.get("loss") is not None:
-            text += f", loss {p['loss']:.3f}"
-    elif phase in ("validate", "done"):
-        # The iteration's log line is written before the next progress report: once it is there, the "validate"
-        # still in progress.json belongs to a finished iteration, already counted in `done`.
-        stale = phase == "validate" and int(p.get("iteration", done + 1)) <= done
-        within = 1.0 if phase == "done" else 0.0 if stale else 0.95
-        text = f"iteration {p.get('iteration', done)} of {iterations}: {phase}"
+                "text": "collecting the expert demonstrations the dataset starts from"}, []
+    text = f"iteration {min(p.done + 1, iterations)} of {iterations}"
+    if p.done >= iterations:
+        text = f"{iterations} iterations done"
+    elif p.rollouts is not None:
+        text += f": rollouts {p.rollouts[0]}/{p.rollouts[1]} (beta {p.beta:.2f})"
+    elif p.batches is not None:
+        text += f": training, batch {p.batches[0]}/{p.batches[1]}" + (f", loss {p.loss:.3f}" if p.loss is not None
+                                                                         else "")
+    elif p.iteration is not None:
+        text = f"iteration {p.iteration} of {iterations}: {p.phase}"
     else:
-        state = _read_json(run.state_dir / "state.json") or {}
-        phase = (state.get("extra") or {}).get("phase", "start")
-        text += f": {phase}"
-    if done >= iterations:
-        phase, within, text = "done", 0.0, f"{iterations} iterations done"
-    fraction = min(1.0, (done + within) / iterations)
-    out = {"phase": phase or "start", "iteration": done, "iterations": iterations, "fraction": round(fraction, 4),
-           "text": text}
-    if metrics:
-        out["loss"] = metrics[-1].get("train", {}).get("loss")
-    return out, metrics
+        text += f": {p.phase}"
+    out = {"phase": p.phase, "iteration": p.done, "iterations": iterations, "fraction": p.fraction, "text": text}
+    if p.log:
+        out["loss"] = p.log[-1].get("train", {}).get("loss")
+    return out, p.log
 
 
 def _read_json(path: Path) -> dict | None:

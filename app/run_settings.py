@@ -1,5 +1,5 @@
 """A fine-tuning run's settings: the presets the dashboard offers (tiny, small, paper), a preset with fields
-overridden, and how the settings become the run's configuration and the flags that carry it to a job's command."""
+overridden, and the run's configuration they make (which checks them)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 
 from app.commands import RunnerError
-from gsmn.config import ConfigError, RunConfig, leaf_fields, preset, with_overrides
+from gsmn.config import ConfigError, RunConfig
 
 
 @dataclass(frozen=True)
@@ -46,53 +46,28 @@ RUN_PRESETS = {
 
 
 def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
-    """A preset with any fields overridden (None leaves the preset's value)."""
+    """A preset with any fields overridden (None leaves the preset's value). Their values are checked where the
+    configuration they become checks them: `run_config`."""
     if preset_name not in RUN_PRESETS:
         raise RunnerError(f"unknown run preset {preset_name!r}; choose from {', '.join(RUN_PRESETS)}")
     names = {f.name for f in fields(RunSettings)} - {"preset"}
     unknown = set(overrides) - names
     if unknown:
         raise RunnerError(f"unknown run setting(s): {', '.join(sorted(unknown))}")
-    s = replace(RUN_PRESETS[preset_name], **{k: v for k, v in overrides.items() if v is not None})
-    for name in ("iterations", "rollouts_per_iteration", "dataset_size", "batch_size", "workers", "threads"):
-        if getattr(s, name) < 1:
-            raise RunnerError(f"{name} must be at least 1, got {getattr(s, name)}")
-    if s.rollouts_per_iteration > s.dataset_size:
-        raise RunnerError(f"N_D (rollouts_per_iteration, {s.rollouts_per_iteration}) cannot exceed M "
-                          f"(dataset_size, {s.dataset_size})")
-    if not 0 <= s.beta0 <= 1:
-        raise RunnerError(f"beta0 must be in [0, 1], got {s.beta0}")
-    if not 0 <= s.mirror <= 1:
-        raise RunnerError(f"mirror (the share of episodes mirrored) must be in [0, 1], got {s.mirror}")
-    if not s.learning_rate > 0:
-        raise RunnerError(f"learning_rate must be positive, got {s.learning_rate}")
-    if s.horizon is not None and s.horizon < 1:
-        raise RunnerError(f"horizon must be at least 1, got {s.horizon}")
-    return s
-
-
-def config_args(config: RunConfig) -> list[str]:
-    """Command-line flags that rebuild `config` from the paper preset (`gsmn <verb> ... <flags>`)."""
-    base, args = preset("paper"), []
-    for path, _, _ in leaf_fields(RunConfig):
-        value, default = config, base
-        for part in path.split("."):
-            value, default = getattr(value, part), getattr(default, part)
-        if value != default:
-            args += ["--" + path.replace("_", "-"), str(value).lower() if isinstance(value, bool) else str(value)]
-    return args
+    return replace(RUN_PRESETS[preset_name], **{k: v for k, v in overrides.items() if v is not None})
 
 
 def run_config(config: RunConfig, s: RunSettings) -> RunConfig:
-    """The server's configuration with a run's settings."""
-    overrides = {"dagger.iterations": s.iterations, "dagger.rollouts_per_iteration": s.rollouts_per_iteration,
-                 "dagger.dataset_size": s.dataset_size, "dagger.beta0": s.beta0, "dagger.workers": s.workers,
-                 "train.learning_rate": s.learning_rate, "train.batch_size": s.batch_size, "train.threads": s.threads,
-                 "train.mirror": s.mirror}
-    if s.horizon is not None:
-        overrides["task.horizon"] = s.horizon
+    """The server's configuration with a run's settings; the configuration checks them (DaggerConfig, TrainConfig,
+    TaskConfig), and what it refuses is the request's error."""
     try:
-        return with_overrides(config, {k: str(v) for k, v in overrides.items()})
+        return replace(
+            config,
+            dagger=replace(config.dagger, iterations=s.iterations, rollouts_per_iteration=s.rollouts_per_iteration,
+                           dataset_size=s.dataset_size, beta0=s.beta0, workers=s.workers),
+            train=replace(config.train, learning_rate=s.learning_rate, batch_size=s.batch_size, threads=s.threads,
+                          mirror=s.mirror),
+            task=config.task if s.horizon is None else replace(config.task, horizon=s.horizon))
     except ConfigError as e:
         raise RunnerError(str(e)) from e
 
