@@ -42,7 +42,16 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.layers import RANGE_MODES, VALUE_MODES, build_layers, inspect_cell, world_cell
+from app.layers import (
+    LAYERS,
+    RANGE_MODES,
+    VALUE_MODES,
+    frame_of,
+    inspect_cell,
+    map_layers,
+    map_title,
+    world_cell,
+)
 from app.panels import (
     camera_html,
     error_html,
@@ -203,8 +212,11 @@ class Viewer(RunnerListener):
             self.whatif_note = gui.add_markdown("Type another instruction: its relevance and goal maps and the action "
                                                 "it would give appear at once, on the map already built.")
         with gui.add_folder("Layers on the ground", expand_by_default=True):
-            self.layer_boxes = {name: gui.add_checkbox(label, default) for name, label, default in (
-                ("semantic", "Semantic map", False), ("relevance", "Relevance map", False), ("goal", "Goal map", True))}
+            # the world-frame layers of the model's output record (app.layers.LAYERS), the goal map shown first
+            labels = {"semantic": ("Semantic map", False), "relevance": ("Relevance map", False),
+                      "goal": ("Goal map", True)}
+            self.layer_boxes = {name: gui.add_checkbox(*labels.get(name, (map_title(name), False)))
+                                for name in LAYERS if name in labels or frame_of(name) == "world"}
             self.opacity = gui.add_slider("Opacity", min=0.0, max=1.0, step=0.05, initial_value=0.8)
             self.value_mode = gui.add_dropdown("Map values", VALUE_MODES, initial_value="probability",
                                                hint="probability: the model's auxiliary heads; raw: channel 0")
@@ -633,18 +645,19 @@ class Viewer(RunnerListener):
         layers = None
         if record.maps is not None and self.runner.models.get(episode.checkpoint) is not None:
             heads = self.runner.models[episode.checkpoint].heads
-            m = record.maps
-            rel, goal, goal_r = (grounding.relevance_w, grounding.goal_w, grounding.goal_r) if grounding \
-                else (m.relevance_w, m.goal_w, m.goal_r)
-            layers = build_layers(m.semantic_w, rel, goal, goal_r, heads, self.value_mode.value, self.range_mode.value)
+            maps = record.maps.maps
+            if grounding:
+                maps = {**maps, "relevance_map_w": grounding.relevance_w, "goal_map_w": grounding.goal_w,
+                        "goal_map_r": grounding.goal_r}
+            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value)
         positions = np.array([s.position for s in episode.steps[: t + 1]])
         opacity = float(self.opacity.value)
         with self.server.atomic():
             self.scene.set_drone(record.position, record.yaw, record.T_world_camera, None, record.camera_jpeg)
             self.scene.set_path(positions)
-            for name in ("semantic", "relevance", "goal"):
-                visible = bool(self.layer_boxes[name].value) and layers is not None
-                layer = layers[name] if visible else None
+            for name, box in self.layer_boxes.items():
+                layer = layers.get(name) if layers is not None and box.value else None
+                visible = layer is not None
                 self.scene.set_layer(name, layer.rgb if layer else None, layer.alpha if layer else None, opacity,
                                      visible)
         self.camera.content = camera_html(record.camera_jpeg)
