@@ -22,9 +22,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.colors import png_bytes, upscale
 from app.commands import MAX_ENV_ID, Ground, Grounding, NotFound, RunnerError, StartEpisode
-from app.layers import LAYERS, map_layers, positive_probability
+from app.layers import LAYERS, map_layers
 from app.recording import Episode, EpisodeResult
 from app.runner import Runner
+from gsmn.model.heads import positive_probability
 
 log = logging.getLogger("gsmn.dashboard")
 COMMAND_TIMEOUT = 60.0

@@ -29,10 +29,11 @@ from app.colors import (
     semantic_classes,
     semantic_legend_html,
     semantic_rgb,
-    softmax,
 )
-from gsmn.attribution import Heads
+from gsmn.attribution import Heads, cell_centre
+from gsmn.model.grid import world_cell
 from gsmn.model.gsmn import GSMNOutputs
+from gsmn.model.heads import positive_probability, softmax
 from gsmn.world.landmarks import CATALOGUE
 
 # the record's maps the heads read, and the names of their layers (in the page and the API)
@@ -65,14 +66,6 @@ class MapHeads(Heads):
 
 
 _PALETTE = class_palette(len(CATALOGUE))
-
-
-def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
-    C, H, W = maps.shape
-    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
-        + bias.astype(np.float32)[:, None]  # einsum: see semantic_classes
-    return softmax(logits, axis=0)[1].reshape(H, W)
 
 
 @dataclass(frozen=True)
@@ -163,12 +156,6 @@ def map_layers(maps: dict[str, np.ndarray], heads: MapHeads, value_mode: str = "
     return out
 
 
-def world_cell(x: float, y: float, field_size: float, cells: int) -> tuple[int, int]:
-    """The (row, col) of the north-up world-map cell holding the point (x, y) (docs/model.md conventions)."""
-    size = field_size / cells
-    return int(np.floor((field_size - y) / size)), int(np.floor(x / size))
-
-
 def mark_drone(rgb: np.ndarray) -> None:
     """Draw the drone at the centre of a robot-frame map (the corner of the four middle cells), in place: a white
     2x2 block with a black cell ahead of it, so the heading (up) reads at a glance."""
@@ -198,14 +185,13 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
                  heads: MapHeads, world) -> CellReport | None:
     """The cell under the world point (x, y); None outside the map."""
     C, n, _ = semantic_w.shape
-    size = world.field_size / n
     r, c = world_cell(x, y, world.field_size, n)
     if not (0 <= r < n and 0 <= c < n):
         return None
     feature = semantic_w[:, r, c].astype(np.float32)
     probs = softmax(np.einsum("kc,c->k", heads.perception_w, feature) + heads.perception_b)
     top = np.argsort(-probs)[:3]
-    cx, cy = (c + 0.5) * size, world.field_size - (r + 0.5) * size
+    cx, cy = cell_centre(r, c, world.field_size, n)
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
     p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0]
     p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0] \

@@ -42,16 +42,7 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.layers import (
-    LAYERS,
-    RANGE_MODES,
-    VALUE_MODES,
-    frame_of,
-    inspect_cell,
-    map_layers,
-    map_title,
-    world_cell,
-)
+from app.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
 from app.panels import (
     camera_html,
     error_html,
@@ -87,6 +78,7 @@ from app.viewer_events import (
     WhatIf,
     WorldChanged,
 )
+from gsmn.model.grid import world_cell
 from gsmn.task.instructions import InstructionError, parse_instruction
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
 

@@ -25,7 +25,7 @@ from app.colors import (
     upscale,
     with_alpha,
 )
-from app.layers import MapHeads, build_layers, inspect_cell, positive_probability, world_cell
+from app.layers import MapHeads, build_layers, inspect_cell
 from app.panels import (
     camera_html,
     cell_marks_html,
@@ -40,6 +40,8 @@ from app.panels import (
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from gsmn.config import preset
+from gsmn.model.grid import world_cell
+from gsmn.model.heads import positive_probability
 from gsmn.task.instructions import SIDES, make_instruction
 from gsmn.task.metrics import side_of
 from gsmn.task.rollout import Task
