@@ -15,7 +15,7 @@ import pytest
 from app.commands import RunnerError
 from app.db import Database, EpisodeRow
 from app.jobs import JobManager, evaluation_system, run_progress
-from app.jobs_view import (
+from app.jobs_panels import (
     compare_html,
     curve_data,
     curve_scales,
