@@ -22,9 +22,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.colors import png_bytes, upscale
 from app.commands import MAX_ENV_ID, Ground, Grounding, NotFound, RunnerError, StartEpisode
-from app.layers import LAYERS, build_layers, positive_probability
+from app.layers import LAYERS, map_layers
 from app.recording import Episode, EpisodeResult
 from app.runner import Runner
+from gsmn.model.heads import positive_probability
 
 log = logging.getLogger("gsmn.dashboard")
 COMMAND_TIMEOUT = 60.0
@@ -255,7 +256,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
 
     @app.get("/api/episodes/{episode_id}/steps/{step}/maps/{layer}.png", response_class=Response,
              responses={200: {"content": {"image/png": {}}}},
-             summary="A map layer at a step as PNG (semantic, relevance, goal, goal_robot), 4x nearest-neighbour")
+             summary="A map layer at a step as PNG (semantic, relevance, goal, goal_robot, or another map of the "
+                     "model's output record by its name, e.g. coverage_w), 4x nearest-neighbour")
     def get_map(episode_id: int, step: int, layer: str) -> Response:
         e = episode_or_404(episode_id)
         if layer not in LAYERS:
@@ -265,7 +267,9 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         if record.maps is None or model is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
-        layers = build_layers(m.semantic_w, m.relevance_w, m.goal_w, m.goal_r, model.heads)
+        layers = map_layers(m.maps, model.heads)
+        if layer not in layers:
+            raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")
 
     @app.post("/api/ground", response_model=GroundResponse,

@@ -15,6 +15,8 @@ import io
 import numpy as np
 from PIL import Image
 
+from gsmn.model.heads import softmax
+
 # matplotlib's viridis at nine evenly spaced points; linear interpolation between them is within a few
 # levels of the full table and keeps the map perceptually ordered and readable for colour-blind people.
 _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), (33, 144, 141), (39, 173, 129),
@@ -72,12 +74,6 @@ def class_palette(n: int) -> np.ndarray:
         v = (0.95, 0.80, 0.65)[(i // 3) % 3]
         out[i] = np.array(colorsys.hsv_to_rgb(h, s, v)) * 255
     return out
-
-
-def softmax(logits: np.ndarray, axis: int = 0) -> np.ndarray:
-    z = logits - logits.max(axis=axis, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=axis, keepdims=True)
 
 
 def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray

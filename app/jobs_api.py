@@ -12,7 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.commands import NotFound, RunnerError, StartEpisode
 from app.db import EpisodeRow, Evaluation, Run
-from app.jobs import JobManager, run_settings
+from app.jobs import JobManager
+from app.run_settings import run_settings
 from app.runner import Runner
 
 COMMAND_TIMEOUT = 60.0

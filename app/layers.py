@@ -10,11 +10,15 @@
 
 The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
 model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
+
+The layers are listed from the model's output record (`GSMNOutputs.maps()`, the fields named `<content>_map_<frame>`
+and the like): the four above are its maps the heads read; any other map the record holds (the coverage, the
+robot-frame relevance map, a map added to the record later) is a layer too, showing its channel 0.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -25,14 +29,25 @@ from app.colors import (
     semantic_classes,
     semantic_legend_html,
     semantic_rgb,
-    softmax,
 )
-from gsmn.attribution import Heads
+from gsmn.attribution import Heads, cell_centre
+from gsmn.model.grid import world_cell
+from gsmn.model.gsmn import GSMNOutputs
+from gsmn.model.heads import positive_probability, softmax
 from gsmn.world.landmarks import CATALOGUE
 
-LAYERS = ("semantic", "relevance", "goal", "goal_robot")
+# the record's maps the heads read, and the names of their layers (in the page and the API)
+READ_MAPS = {"semantic_map_w": "semantic", "relevance_map_w": "relevance", "goal_map_w": "goal",
+             "goal_map_r": "goal_robot"}
+# Maps of the record the dashboard does not keep per step (app.runner): the image features and their projection
+# are the largest (about 100 kB a step together, more than all the others), and the semantic map holds what they
+# add up to.
+NOT_KEPT = ("features_c", "projected_features_w")
+RECORD_MAPS = tuple(f.name for f in fields(GSMNOutputs) if f.name[-2:] in ("_c", "_w", "_r"))  # as .maps() names
+LAYERS = (*READ_MAPS.values(), *(m for m in RECORD_MAPS if m not in READ_MAPS and m not in NOT_KEPT))
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
           "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
+FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
 NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
@@ -53,14 +68,6 @@ class MapHeads(Heads):
 _PALETTE = class_palette(len(CATALOGUE))
 
 
-def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
-    C, H, W = maps.shape
-    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
-        + bias.astype(np.float32)[:, None]  # einsum: see semantic_classes
-    return softmax(logits, axis=0)[1].reshape(H, W)
-
-
 @dataclass(frozen=True)
 class Layer:
     name: str
@@ -69,10 +76,21 @@ class Layer:
     alpha: np.ndarray  # (H, W) float in [0, 1]: how opaque each cell is on the ground (low values show the field)
     legend_html: str
     values: np.ndarray | None = None  # (H, W) the scalar shown, for inspection
+    frame: str = "world"  # "world" (north up, can lie on the ground), "robot" (ahead up) or "camera"
+
+
+def frame_of(map_name: str) -> str:
+    return FRAMES.get(map_name[-2:], "world")
+
+
+def map_title(map_name: str) -> str:
+    """A title for a map the heads do not read, from its name: 'relevance_map_r' -> 'Relevance map, robot frame'."""
+    words = map_name[:-2].replace("_", " ") if map_name[-2:] in FRAMES else map_name.replace("_", " ")
+    return f"{words[:1].upper()}{words[1:]}, {frame_of(map_name)} frame"
 
 
 def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: str, label: str,
-                  title: str | None = None) -> Layer:
+                  title: str | None = None, frame: str = "world") -> Layer:
     if range_mode == "fixed" and label.startswith("P("):
         vmin, vmax = 0.0, 1.0
     else:
@@ -83,7 +101,7 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
     # On the ground a scalar map is a heat overlay: opacity grows with the value, so the field and the
     # landmarks show through where the map is low.
     heat = 0.12 + 0.88 * np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
-    return Layer(name, title or TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values)
+    return Layer(name, title or TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values, frame)
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
@@ -116,15 +134,26 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
            "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0]),
            "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1], goal_title),
            "goal_robot": _scalar_layer("goal_robot", goal_robot, np.ones(goal_robot.shape, np.float32), range_mode,
-                                       labels[2])}
+                                       labels[2], frame="robot")}
     mark_drone(out["goal_robot"].rgb)
     return out
 
 
-def world_cell(x: float, y: float, field_size: float, cells: int) -> tuple[int, int]:
-    """The (row, col) of the north-up world-map cell holding the point (x, y) (docs/model.md conventions)."""
-    size = field_size / cells
-    return int(np.floor((field_size - y) / size)), int(np.floor(x / size))
+def map_layers(maps: dict[str, np.ndarray], heads: MapHeads, value_mode: str = "probability",
+               range_mode: str = "fixed") -> dict[str, Layer]:
+    """A layer for each map of one step of the output record (`GSMNOutputs.maps()` names, channels first): the maps
+    the heads read as `build_layers` shows them, then every other one as its channel 0 (this frame's range)."""
+    out = build_layers(*(maps[name] for name in READ_MAPS), heads, value_mode, range_mode)
+    for name, m in maps.items():
+        if name in READ_MAPS:
+            continue
+        values = np.asarray(m[0] if m.ndim == 3 else m, np.float32)  # (H, W)
+        frame = frame_of(name)
+        out[name] = _scalar_layer(name, values, np.ones(values.shape, np.float32), "frame", "channel 0",
+                                  map_title(name), frame)
+        if frame == "robot":
+            mark_drone(out[name].rgb)
+    return out
 
 
 def mark_drone(rgb: np.ndarray) -> None:
@@ -156,14 +185,13 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
                  heads: MapHeads, world) -> CellReport | None:
     """The cell under the world point (x, y); None outside the map."""
     C, n, _ = semantic_w.shape
-    size = world.field_size / n
     r, c = world_cell(x, y, world.field_size, n)
     if not (0 <= r < n and 0 <= c < n):
         return None
     feature = semantic_w[:, r, c].astype(np.float32)
     probs = softmax(np.einsum("kc,c->k", heads.perception_w, feature) + heads.perception_b)
     top = np.argsort(-probs)[:3]
-    cx, cy = (c + 0.5) * size, world.field_size - (r + 0.5) * size
+    cx, cy = cell_centre(r, c, world.field_size, n)
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
     p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0]
     p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0] \

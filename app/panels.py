@@ -21,6 +21,8 @@ from app.recording import FINISHED, Episode, StepRecord
 from gsmn.task.metrics import steps_in_success_region
 
 PIXELATED = "width:100%;image-rendering:pixelated;display:block"
+WHATIF_LAYERS = ("relevance", "goal", "goal_robot")  # the layers a what-if instruction grounds anew
+ORIENTATIONS = {"world": "north up", "robot": "ahead up", "camera": "the camera's view"}
 
 
 def error_html(text: str) -> str:
@@ -196,8 +198,9 @@ def camera_html(jpeg: bytes) -> str:
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
               cell_of) -> str:
-    """The map panels of one step: semantic, relevance and goal (north-up) and the robot-frame goal map, each
-    with its legend. The drone's cell is outlined in white and the goal's in red on the world maps."""
+    """The map panels of one step, one per layer (`app.layers.map_layers`: semantic, relevance and goal north-up,
+    the robot-frame goal map, then the record's other maps), each with its legend. The drone's cell is outlined in
+    white and the goal's in red on the world maps."""
     attrs = (f'class="gsmn-maps" data-episode="{episode.id}" data-step="{t}" '
              f'data-counterfactual="{int(bool(whatif_text))}"')
     if layers is None:
@@ -208,13 +211,12 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
     marks = [(*cell_of(record.position[0], record.position[1]), (255, 255, 255)),
              (*cell_of(instruction.goal_x, instruction.goal_y), (230, 30, 30))]
     cells = []
-    for name in ("semantic", "relevance", "goal", "goal_robot"):
-        layer = layers[name]
-        overlay = cell_marks_html(marks, layer.rgb.shape[0]) if name != "goal_robot" else ""
+    for name, layer in layers.items():
+        overlay = cell_marks_html(marks, layer.rgb.shape[0]) if layer.frame == "world" else ""
         title = layer.title
-        if whatif_text and name in ("relevance", "goal", "goal_robot"):
+        if whatif_text and name in WHATIF_LAYERS:
             title += " · what-if"
-        orient = "north up" if name != "goal_robot" else "ahead up"
+        orient = ORIENTATIONS[layer.frame]
         cells.append(f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">{html.escape(title)}</div>'
                      f'<div style="position:relative;border-radius:3px;overflow:hidden">'
                      f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED}" '

@@ -24,17 +24,39 @@ LIVE = (QUEUED, RUNNING, PAUSED)
 
 @dataclass(frozen=True)
 class StepMaps:
-    """What the model computed at one step, as small float16 arrays (north-up world maps, docs/model.md)."""
+    """What the model computed at one step: the maps of its output record (`GSMNOutputs.maps()`), under the
+    record's names, as small float16 arrays (north-up world maps, docs/model.md), and its own action."""
 
-    semantic_w: np.ndarray  # (C_f, n, n) the semantic map after this step's image
-    coverage_w: np.ndarray  # (n, n) this step's camera coverage
-    relevance_w: np.ndarray  # (3, n, n)
-    goal_w: np.ndarray  # (2, n, n)
-    goal_r: np.ndarray  # (2, 2n, 2n) the goal map the controller reads (drone at the centre, facing up)
+    maps: dict[str, np.ndarray]  # e.g. semantic_map_w (C_f, n, n), goal_map_r (2, 2n, 2n): one step, channels first
     pose: np.ndarray  # (3,) x, y, yaw the model used (float32)
     v: float  # the model's own action (m/s, rad/s) and STOP probability at this step
     omega: float
     stop_probability: float
+
+    @property
+    def semantic_w(self) -> np.ndarray:
+        """(C_f, n, n) the semantic map after this step's image."""
+        return self.maps["semantic_map_w"]
+
+    @property
+    def coverage_w(self) -> np.ndarray:
+        """(n, n) this step's camera coverage."""
+        return self.maps["coverage_w"][0]
+
+    @property
+    def relevance_w(self) -> np.ndarray:
+        """(3, n, n)"""
+        return self.maps["relevance_map_w"]
+
+    @property
+    def goal_w(self) -> np.ndarray:
+        """(2, n, n)"""
+        return self.maps["goal_map_w"]
+
+    @property
+    def goal_r(self) -> np.ndarray:
+        """(2, 2n, 2n) the goal map the controller reads (drone at the centre, facing up)."""
+        return self.maps["goal_map_r"]
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.layers import MapHeads
+from app.layers import NOT_KEPT, MapHeads
 from app.recording import (
     CANCELLED,
     FAILED,
@@ -560,9 +560,9 @@ def _step_maps(policy) -> StepMaps | None:
     def f16(t: torch.Tensor) -> np.ndarray:
         return t[0, 0].to(torch.float16).numpy().copy()
 
-    return StepMaps(semantic_w=f16(out.semantic_map_w), coverage_w=f16(out.coverage_w)[0],
-                    relevance_w=f16(out.relevance_map_w), goal_w=f16(out.goal_map_w), goal_r=f16(out.goal_map_r),
-                    pose=out.poses[0, 0].float().numpy().copy(), v=float(out.v[0, 0]) * drone.max_forward_velocity,
+    maps = {name: f16(t) for name, t in out.maps().items() if name not in NOT_KEPT}
+    return StepMaps(maps=maps, pose=out.poses[0, 0].float().numpy().copy(),
+                    v=float(out.v[0, 0]) * drone.max_forward_velocity,
                     omega=float(out.omega[0, 0]) * drone.max_yaw_rate,
                     stop_probability=float(torch.sigmoid(out.stop_logit[0, 0])))
 

@@ -24,7 +24,8 @@ POLICY_RGB = (40, 110, 245)
 QUADRANT_RGB = (60, 200, 90)
 COUNTERFACTUAL_RGB = (245, 190, 30)
 MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the texture's linear filtering
-LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}
+LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other layer: just below the semantic map
+OTHER_LAYER_HEIGHT = 0.02
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 # The 3D view's first camera: over the field from beyond its south-west corner (viser's vertical field of view).
@@ -301,8 +302,8 @@ class SceneView:
             L = self.world.field_size if self.world else 30.0
             self.layers[name] = self.scene.add_image(
                 f"/world/map_{name}", rgba, render_width=L, render_height=L, format="png", wxyz=NORTH_UP,
-                position=(L / 2, L / 2, LAYER_HEIGHTS[name]), cast_shadow=False, receive_shadow=False,
-                visible=visible)
+                position=(L / 2, L / 2, LAYER_HEIGHTS.get(name, OTHER_LAYER_HEIGHT)), cast_shadow=False,
+                receive_shadow=False, visible=visible)
         else:
             set_png(handle, rgba)
             handle.visible = visible

@@ -1,9 +1,10 @@
 """The browser page (viser): controls on the left, the 3D scene in the middle, camera and maps on the right.
 
 Every action goes to the runner as a command (`app.runner`), the same commands the HTTP API posts. What the
-runner reports (a world shown, an episode started, a step recorded, an episode ended) goes into this viewer's
-event queue; one UI thread turns events into scene and GUI updates, drawing only the newest step when the
-simulator is ahead of the page, so a slow browser never slows the simulator. The timeline shows any recorded
+runner reports (a world shown, an episode started, a step recorded, an episode ended) and what a person does go
+into this viewer's event queue as typed records (`app.viewer_events`); one UI thread turns events into scene and GUI
+updates, drawing only the newest step when the simulator is ahead of the page, so a slow browser never slows the
+simulator. The timeline shows any recorded
 step of the displayed episode, live or finished, with every view (scene, camera, maps, readouts) in sync.
 
 The scene and the controls are shared by every open tab (viser's server-level API).
@@ -41,7 +42,7 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.layers import RANGE_MODES, VALUE_MODES, build_layers, inspect_cell, world_cell
+from app.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
 from app.panels import (
     camera_html,
     error_html,
@@ -58,6 +59,26 @@ from app.panels import (
 from app.recording import Episode, StepRecord
 from app.runner import Runner
 from app.scene import DEFAULT_CAMERA, SceneView
+from app.viewer_events import (
+    Close,
+    CursorMoved,
+    EpisodeEnded,
+    EpisodeStarted,
+    Event,
+    FollowSet,
+    GroundClicked,
+    Grounded,
+    OptionsChanged,
+    PlaybackPressed,
+    ShowAnswered,
+    StartAnswered,
+    StateChanged,
+    StepRecorded,
+    TaskVisibility,
+    WhatIf,
+    WorldChanged,
+)
+from gsmn.model.grid import world_cell
 from gsmn.task.instructions import InstructionError, parse_instruction
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
 
@@ -126,24 +147,24 @@ class Viewer(RunnerListener):
 
     def close(self) -> None:
         self._closing = True
-        self._events.put(("close",))
+        self._events.put(Close())
         self.thread.join(timeout=5)
 
     # -- runner events (runner thread: only enqueue) ------------------------------------------------------------
     def on_world(self, shown: WorldShown) -> None:
-        self._events.put(("world", shown))
+        self._events.put(WorldChanged(shown))
 
     def on_episode_start(self, episode: Episode) -> None:
-        self._events.put(("start", episode))
+        self._events.put(EpisodeStarted(episode))
 
     def on_step(self, episode: Episode, record: StepRecord) -> None:
-        self._events.put(("step", episode))
+        self._events.put(StepRecorded(episode))
 
     def on_episode_end(self, episode: Episode) -> None:
-        self._events.put(("end", episode))
+        self._events.put(EpisodeEnded(episode))
 
     def on_state(self, episode: Episode | None, paused: bool) -> None:
-        self._events.put(("state", episode))
+        self._events.put(StateChanged(episode))
 
     # -- the GUI ----------------------------------------------------------------------------------------------
     def _build_controls(self, env_id: int) -> None:
@@ -184,8 +205,11 @@ class Viewer(RunnerListener):
             self.whatif_note = gui.add_markdown("Type another instruction: its relevance and goal maps and the action "
                                                 "it would give appear at once, on the map already built.")
         with gui.add_folder("Layers on the ground", expand_by_default=True):
-            self.layer_boxes = {name: gui.add_checkbox(label, default) for name, label, default in (
-                ("semantic", "Semantic map", False), ("relevance", "Relevance map", False), ("goal", "Goal map", True))}
+            # the world-frame layers of the model's output record (app.layers.LAYERS), the goal map shown first
+            labels = {"semantic": ("Semantic map", False), "relevance": ("Relevance map", False),
+                      "goal": ("Goal map", True)}
+            self.layer_boxes = {name: gui.add_checkbox(*labels.get(name, (map_title(name), False)))
+                                for name in LAYERS if name in labels or frame_of(name) == "world"}
             self.opacity = gui.add_slider("Opacity", min=0.0, max=1.0, step=0.05, initial_value=0.8)
             self.value_mode = gui.add_dropdown("Map values", VALUE_MODES, initial_value="probability",
                                                hint="probability: the model's auxiliary heads; raw: channel 0")
@@ -202,10 +226,10 @@ class Viewer(RunnerListener):
         self.speed.on_update(self._on_speed)
         self.whatif_buttons.on_click(self._on_whatif)
         for box in self.layer_boxes.values():
-            box.on_update(lambda _: self._events.put(("options",)))
+            box.on_update(lambda _: self._events.put(OptionsChanged()))
         for control in (self.opacity, self.value_mode, self.range_mode):
-            control.on_update(lambda _: self._events.put(("options",)))
-        self.show_task.on_update(lambda _: self._events.put(("task_visible",)))
+            control.on_update(lambda _: self._events.put(OptionsChanged()))
+        self.show_task.on_update(lambda _: self._events.put(TaskVisibility()))
 
     def _build_views(self) -> None:
         gui = self.server.gui
@@ -264,7 +288,7 @@ class Viewer(RunnerListener):
         if event.target.value == "Random in split":
             self.env_number.value = split_env_ids(self.split.value, 1, start=int(self.rng.integers(0, 100000)))[0]
         env_id = int(self.env_number.value)
-        self._post(ShowEnv(env_id), "show")
+        self._post(ShowEnv(env_id), ShowAnswered)
 
     def _run(self, paused: bool) -> None:
         self._clicked_at = time.perf_counter()
@@ -272,11 +296,11 @@ class Viewer(RunnerListener):
         text = self.instruction.value.strip() or None
         self.status.content = "Starting..."
         self._post(StartEpisode(int(self.env_number.value), text, policy, checkpoint, preempt=True, paused=paused),
-                   "started")
+                   StartAnswered)
 
-    def _post(self, command, kind: str) -> Future:
+    def _post(self, command, answered: type[ShowAnswered | StartAnswered]) -> Future:
         future = self.runner.post(command)
-        future.add_done_callback(lambda f: self._events.put((kind, f)))
+        future.add_done_callback(lambda f: self._events.put(answered(f)))
         return future
 
     def _on_instruction_typed(self, event: viser.GuiEvent) -> None:
@@ -298,7 +322,7 @@ class Viewer(RunnerListener):
         return f"Understood: the **{instruction.side}** side of the **{instruction.noun_phrase}**{note}."
 
     def _on_playback(self, event: viser.GuiEvent) -> None:
-        self._events.put(("playback", event.target.value))
+        self._events.put(PlaybackPressed(event.target.value))
 
     def _on_speed(self, event: viser.GuiEvent) -> None:
         if event.client is not None:
@@ -306,21 +330,21 @@ class Viewer(RunnerListener):
 
     def _on_timeline(self, event: viser.GuiEvent) -> None:
         if event.client is not None:  # a person moved it (our own updates come with client None)
-            self._events.put(("cursor", int(self.timeline.value)))
+            self._events.put(CursorMoved(int(self.timeline.value)))
 
     def _on_follow(self, event: viser.GuiEvent) -> None:
         if event.client is not None:
-            self._events.put(("follow", bool(self.follow.value)))
+            self._events.put(FollowSet(bool(self.follow.value)))
 
     def _on_ground_click(self, x: float, y: float) -> None:
-        self._events.put(("inspect", x, y))
+        self._events.put(GroundClicked(x, y))
 
     def _on_whatif(self, event: viser.GuiEvent) -> None:
         if event.target.value == "Clear":
-            self._events.put(("whatif", None))
+            self._events.put(WhatIf(None))
         else:
             self._whatif_at = time.perf_counter()
-            self._events.put(("whatif", self.whatif.value.strip()))
+            self._events.put(WhatIf(self.whatif.value.strip()))
 
     # -- the UI thread ----------------------------------------------------------------------------------------
     def _loop(self) -> None:
@@ -332,7 +356,7 @@ class Viewer(RunnerListener):
             timeout = 1.0 / REPLAY_STEPS_PER_SECOND if self.view.replaying else 1.0
             if frame_due is not None:
                 timeout = min(timeout, max(0.0, frame_due - time.perf_counter()))
-            events = []
+            events: list[Event] = []
             try:
                 events.append(self._events.get(timeout=timeout))
                 while True:
@@ -342,10 +366,10 @@ class Viewer(RunnerListener):
             try:
                 draw_now = False
                 for event in events:
-                    if event[0] == "close":
+                    if isinstance(event, Close):
                         return
                     dirty = self._apply(event)
-                    if dirty and event[0] == "step" and len(event[1].steps) > 1:
+                    if dirty and isinstance(event, StepRecorded) and len(event.episode.steps) > 1:
                         if frame_due is None:
                             frame_due = last_frame + 1.0 / LIVE_FRAMES_PER_SECOND
                     else:
@@ -357,80 +381,80 @@ class Viewer(RunnerListener):
             except Exception:  # noqa: BLE001 - keep the page alive; the log says what broke
                 log.error("viewer update failed:\n%s", traceback.format_exc())
 
-    def _apply(self, event: tuple) -> bool:
+    def _apply(self, event: Event) -> bool:
         """Apply one event to the view; True when the shown step must be redrawn."""
-        kind, v = event[0], self.view
-        if kind == "world":
-            self._show_world(event[1])
-            return False
-        if kind == "start":
-            self._start(event[1])
-            return False
-        if kind == "step":
-            episode = event[1]
-            if episode is v.episode:
-                if v.follow:
-                    v.cursor = len(episode.steps) - 1
-                return v.follow or len(episode.steps) <= 2  # the timeline grows either way
-            return False
-        if kind == "end":
-            episode = event[1]
-            if episode is v.episode:
-                v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
-                self.result.content = result_markdown(episode, self.runner.config.task.success_radius)
-                self.status.content = status_line(episode)
+        v = self.view
+        match event:
+            case WorldChanged(shown):
+                self._show_world(shown)
+                return False
+            case EpisodeStarted(episode):
+                self._start(episode)
+                return False
+            case StepRecorded(episode):
+                if episode is v.episode:
+                    if v.follow:
+                        v.cursor = len(episode.steps) - 1
+                    return v.follow or len(episode.steps) <= 2  # the timeline grows either way
+                return False
+            case EpisodeEnded(episode):
+                if episode is v.episode:
+                    v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
+                    self.result.content = result_markdown(episode, self.runner.config.task.success_radius)
+                    self.status.content = status_line(episode)
+                    return True
+                return False
+            case StateChanged(episode):
+                if episode is v.episode and v.episode is not None:
+                    self.status.content = status_line(v.episode)
+                return False
+            case CursorMoved(step):
+                if v.episode is not None and v.episode.steps:
+                    v.cursor = max(0, min(step, len(v.episode.steps) - 1))
+                    v.follow = v.cursor == len(v.episode.steps) - 1 and v.episode.live
+                    v.replaying = False
+                    self.follow.value = v.follow
                 return True
-            return False
-        if kind == "state":
-            if event[1] is v.episode and v.episode is not None:
-                self.status.content = status_line(v.episode)
-            return False
-        if kind == "cursor":
-            if v.episode is not None and v.episode.steps:
-                v.cursor = max(0, min(event[1], len(v.episode.steps) - 1))
-                v.follow = v.cursor == len(v.episode.steps) - 1 and v.episode.live
-                v.replaying = False
-                self.follow.value = v.follow
-            return True
-        if kind == "follow":
-            v.follow = event[1]
-            if v.follow and v.episode is not None and v.episode.steps:
-                v.cursor = len(v.episode.steps) - 1
-            return True
-        if kind == "playback":
-            return self._playback(event[1])
-        if kind in ("show", "started"):
-            return self._command_answered(kind, event[1])
-        if kind == "whatif":
-            return self._set_counterfactual(event[1])
-        if kind == "grounded":
-            key, result = event[1], event[2]
-            self._grounding.discard(key)
-            self._grounded[key] = result
-            return v.episode is not None and key[:2] == (v.episode.id, v.cursor)
-        if kind == "options":
-            return True
-        if kind == "inspect":
-            v.inspected = (event[1], event[2])
-            return True
-        if kind == "task_visible":
-            with self.server.atomic():
-                self.scene.set_task_visible(bool(self.show_task.value))
-            return False
+            case FollowSet(follow):
+                v.follow = follow
+                if v.follow and v.episode is not None and v.episode.steps:
+                    v.cursor = len(v.episode.steps) - 1
+                return True
+            case PlaybackPressed(button):
+                return self._playback(button)
+            case ShowAnswered(future):
+                return self._command_answered(future, started=False)
+            case StartAnswered(future):
+                return self._command_answered(future, started=True)
+            case WhatIf(text):
+                return self._set_counterfactual(text)
+            case Grounded(key, result):
+                self._grounding.discard(key)
+                self._grounded[key] = result
+                return v.episode is not None and key[:2] == (v.episode.id, v.cursor)
+            case OptionsChanged():
+                return True
+            case GroundClicked(x, y):
+                v.inspected = (x, y)
+                return True
+            case TaskVisibility():
+                with self.server.atomic():
+                    self.scene.set_task_visible(bool(self.show_task.value))
+                return False
         return False
 
-    def _command_answered(self, kind: str, future: Future) -> bool:
+    def _command_answered(self, future: Future, started: bool) -> bool:
         try:
             result = future.result()
         except RunnerError as e:
             self.status.content = error_html(f"**Not started:** {html.escape(str(e))}")
-            if kind == "started":
+            if started:
                 self.instruction_note.content = self.status.content
             return False
         except Exception as e:  # noqa: BLE001
             self.status.content = f"**Error:** {html.escape(str(e))}"
             return False
-        if kind == "started":
+        if started:
             self.instruction_note.content = ""
             self.status.content = f"Episode {result.id} queued."
         return False
@@ -598,7 +622,7 @@ class Viewer(RunnerListener):
                     late: Grounding | str = f.result()
                 except Exception as e:  # noqa: BLE001 - shown to the user
                     late = str(e)
-                self._events.put(("grounded", key, late))
+                self._events.put(Grounded(key, late))
 
             future.add_done_callback(done)
             return None
@@ -621,18 +645,19 @@ class Viewer(RunnerListener):
         layers = None
         if record.maps is not None and self.runner.models.get(episode.checkpoint) is not None:
             heads = self.runner.models[episode.checkpoint].heads
-            m = record.maps
-            rel, goal, goal_r = (grounding.relevance_w, grounding.goal_w, grounding.goal_r) if grounding \
-                else (m.relevance_w, m.goal_w, m.goal_r)
-            layers = build_layers(m.semantic_w, rel, goal, goal_r, heads, self.value_mode.value, self.range_mode.value)
+            maps = record.maps.maps
+            if grounding:
+                maps = {**maps, "relevance_map_w": grounding.relevance_w, "goal_map_w": grounding.goal_w,
+                        "goal_map_r": grounding.goal_r}
+            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value)
         positions = np.array([s.position for s in episode.steps[: t + 1]])
         opacity = float(self.opacity.value)
         with self.server.atomic():
             self.scene.set_drone(record.position, record.yaw, record.T_world_camera, None, record.camera_jpeg)
             self.scene.set_path(positions)
-            for name in ("semantic", "relevance", "goal"):
-                visible = bool(self.layer_boxes[name].value) and layers is not None
-                layer = layers[name] if visible else None
+            for name, box in self.layer_boxes.items():
+                layer = layers.get(name) if layers is not None and box.value else None
+                visible = layer is not None
                 self.scene.set_layer(name, layer.rgb if layer else None, layer.alpha if layer else None, opacity,
                                      visible)
         self.camera.content = camera_html(record.camera_jpeg)

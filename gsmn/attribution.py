@@ -32,6 +32,8 @@ import numpy as np
 import torch
 
 from gsmn.config import RunConfig
+from gsmn.model.grid import world_cell
+from gsmn.model.heads import positive_probability, softmax
 from gsmn.task.instructions import Instruction
 from gsmn.task.metrics import side_of
 from gsmn.world.catalogue import CATALOGUE
@@ -125,29 +127,15 @@ class Attribution:
 
 
 # -- helpers ------------------------------------------------------------------------------------------------------
-def softmax(x: np.ndarray, axis: int = 0) -> np.ndarray:
-    z = x - x.max(axis=axis, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=axis, keepdims=True)
-
-
 def cell_of(x: float, y: float, field_size: float, n: int) -> tuple[int, int]:
     """The (row, col) of the north-up world-map cell holding (x, y), clamped into the map (gsmn.model.grid)."""
-    s = field_size / n
-    return min(max(int(math.floor((field_size - y) / s)), 0), n - 1), min(max(int(math.floor(x / s)), 0), n - 1)
+    row, col = world_cell(x, y, field_size, n)
+    return min(max(row, 0), n - 1), min(max(col, 0), n - 1)
 
 
 def cell_centre(row: int, col: int, field_size: float, n: int) -> tuple[float, float]:
     s = field_size / n
     return (col + 0.5) * s, field_size - (row + 0.5) * s
-
-
-def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
-    C, H, W = maps.shape
-    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
-        + bias.astype(np.float32)[:, None]  # einsum, not @: see app/colors.semantic_classes
-    return softmax(logits, axis=0)[1].reshape(H, W)
 
 
 def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:

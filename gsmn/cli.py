@@ -19,7 +19,10 @@ from gsmn.config import PRESETS, ConfigError, RunConfig, leaf_fields, preset, wi
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("configuration (see gsmn/config.py)")
-    group.add_argument("--preset", choices=PRESETS, default="paper", help="named preset (default: paper)")
+    group.add_argument("--preset", choices=PRESETS, default=None, help="named preset (default: paper)")
+    group.add_argument("--config", default=None, metavar="FILE",
+                       help="start from this saved RunConfig JSON (e.g. a run folder's config.json) instead of a "
+                            "preset; the flags below still override it")
     for path, hint, f in leaf_fields(RunConfig):
         flag = "--" + path.replace("_", "-")
         name = getattr(hint, "__name__", str(hint))
@@ -28,8 +31,21 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:
+    """The preset (or the --config file), with the flags given applied over it."""
     overrides = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg:") and v is not None}
-    return with_overrides(preset(args.preset), overrides)
+    if args.config is not None and args.preset is not None:
+        raise ConfigError("give --preset or --config, not both")
+    if args.config is not None:
+        path = Path(args.config)
+        try:
+            base = RunConfig.from_dict(json.loads(path.read_text()))
+        except OSError as e:
+            raise ConfigError(f"cannot read --config {path}: {e.strerror or e}") from e
+        except (ValueError, TypeError) as e:  # ConfigError is a ValueError: its message names the field
+            raise ConfigError(f"--config {path} is not a RunConfig JSON file: {e}") from e
+    else:
+        base = preset(args.preset or "paper")
+    return with_overrides(base, overrides)
 
 
 # -- gsmn world -------------------------------------------------------------------------------------

@@ -290,12 +290,14 @@ class TrainConfig:
                         "weights on its outputs only, everything else frozen; not in the paper: docs/design.md)")
 
     def __post_init__(self) -> None:
-        _check(self.epochs >= 1, "train.epochs must be >= 1")
-        _check(0.0 <= self.mirror <= 1.0, "train.mirror must be a probability in [0, 1]")
-        _check(self.batch_size >= 1, "train.batch_size must be >= 1")
-        _check(self.learning_rate > 0 and self.weight_decay >= 0, "train.learning_rate > 0, weight_decay >= 0")
+        _check(self.epochs >= 1, f"train.epochs must be at least 1, got {self.epochs}")
+        _check(0.0 <= self.mirror <= 1.0,
+               f"train.mirror (the share of episodes mirrored) must be a probability in [0, 1], got {self.mirror}")
+        _check(self.batch_size >= 1, f"train.batch_size must be at least 1, got {self.batch_size}")
+        _check(self.learning_rate > 0, f"train.learning_rate must be positive, got {self.learning_rate}")
+        _check(self.weight_decay >= 0, f"train.weight_decay must be >= 0, got {self.weight_decay}")
         _check(self.save_every_seconds >= 0, "train.save_every_seconds must be >= 0")
-        _check(self.threads >= 1, "train.threads must be >= 1")
+        _check(self.threads >= 1, f"train.threads must be at least 1, got {self.threads}")
         _check(self.prefetch >= 0, "train.prefetch must be >= 0")
         _check(self.trainable in ("all", "memory"), "train.trainable must be 'all' or 'memory'")
         _check(self.device == "cpu" or re.fullmatch(r"cuda(:\d+)?", self.device) is not None,
@@ -317,12 +319,15 @@ class DaggerConfig:
                                       "paper: rollouts then visit the states of the policy that is deployed that way)")
 
     def __post_init__(self) -> None:
-        _check(self.iterations >= 1, "dagger.iterations must be >= 1")
-        _check(1 <= self.rollouts_per_iteration <= self.dataset_size,
-               "need 1 <= dagger.rollouts_per_iteration <= dagger.dataset_size")
-        _check(0 <= self.beta0 <= 1, "dagger.beta0 must be in [0, 1]")
+        _check(self.iterations >= 1, f"dagger.iterations must be at least 1, got {self.iterations}")
+        _check(self.rollouts_per_iteration >= 1,
+               f"dagger.rollouts_per_iteration must be at least 1, got {self.rollouts_per_iteration}")
+        _check(self.rollouts_per_iteration <= self.dataset_size,
+               f"N_D (dagger.rollouts_per_iteration, {self.rollouts_per_iteration}) cannot exceed M "
+               f"(dagger.dataset_size, {self.dataset_size})")
+        _check(0 <= self.beta0 <= 1, f"dagger.beta0 must be in [0, 1], got {self.beta0}")
         _check(self.max_deviation > 0, "dagger.max_deviation must be positive")
-        _check(self.workers >= 1, "dagger.workers must be >= 1")
+        _check(self.workers >= 1, f"dagger.workers must be at least 1, got {self.workers}")
         _check(self.split in ("train", "test", "dev"), "dagger.split must be train, test or dev")
 
 

@@ -25,7 +25,7 @@ from app.colors import (
     upscale,
     with_alpha,
 )
-from app.layers import MapHeads, build_layers, inspect_cell, positive_probability, world_cell
+from app.layers import MapHeads, build_layers, inspect_cell
 from app.panels import (
     camera_html,
     cell_marks_html,
@@ -40,6 +40,8 @@ from app.panels import (
 from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
 from app.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from gsmn.config import preset
+from gsmn.model.grid import world_cell
+from gsmn.model.heads import positive_probability
 from gsmn.task.instructions import SIDES, make_instruction
 from gsmn.task.metrics import side_of
 from gsmn.task.rollout import Task
@@ -236,9 +238,11 @@ def _episode_with_steps() -> Episode:
     instruction = make_instruction(world, 0, "left")
     e = Episode(id=7, task=Task(world, instruction, np.zeros((2, 2))), policy="model", system="gsmn",
                 checkpoint="ckpt", horizon=150, status=FINISHED)
-    maps = StepMaps(np.zeros((32, 32, 32), np.float16), np.zeros((32, 32), np.float16),
-                    np.zeros((3, 32, 32), np.float16), np.zeros((2, 32, 32), np.float16),
-                    np.zeros((2, 64, 64), np.float16), np.zeros(3, np.float32), 1.2, -0.3, 0.7)
+    maps = StepMaps({"semantic_map_w": np.zeros((32, 32, 32), np.float16),
+                     "coverage_w": np.zeros((1, 32, 32), np.float16),
+                     "relevance_map_w": np.zeros((3, 32, 32), np.float16),
+                     "goal_map_w": np.zeros((2, 32, 32), np.float16),
+                     "goal_map_r": np.zeros((2, 64, 64), np.float16)}, np.zeros(3, np.float32), 1.2, -0.3, 0.7)
     e.steps.append(StepRecord(0, 0.0, (30.0, 0.0, 5.0), 2.3, np.eye(4, dtype=np.float32), b"", 1.2, -0.3, True,
                               maps))
     record = EpisodeRecord(system="gsmn", env_id=70, instruction=instruction.text, landmark_index=0,
@@ -316,3 +320,27 @@ def test_the_page_text_says_the_result_plainly():
     camera = camera_html(jpeg_bytes(np.zeros((144, 256, 3), np.uint8)))
     assert '<img class="gsmn-camera" src="data:image/jpeg;base64,' in camera and "pixelated" in camera
     assert "No model maps" in maps_html(e, 0, None, None, None)
+
+
+def test_every_map_of_the_output_record_is_a_layer_and_a_panel():
+    """The layers come from the model's output record (GSMNOutputs.maps()): a map the heads do not read, or one
+    added to the record later, is a layer and a panel of its own with no change to the dashboard."""
+    from app.layers import LAYERS, map_layers
+    from gsmn.model.gsmn import GSMNOutputs
+
+    kept = {f.name for f in dataclasses.fields(GSMNOutputs)} & {"coverage_w", "relevance_map_r"}
+    assert kept == {"coverage_w", "relevance_map_r"} and kept <= set(LAYERS)
+    assert LAYERS[:4] == ("semantic", "relevance", "goal", "goal_robot")
+    e = _episode_with_steps()
+    elevation = np.zeros((1, 32, 32), np.float16)
+    elevation[0, 0, 31] = 3.0
+    maps = {**e.steps[0].maps.maps, "elevation_map_w": elevation, "relevance_map_r": np.ones((3, 64, 64), np.float16)}
+    layers = map_layers(maps, _heads())
+    assert list(layers) == ["semantic", "relevance", "goal", "goal_robot", "coverage_w", "elevation_map_w",
+                            "relevance_map_r"]
+    new = layers["elevation_map_w"]
+    assert new.frame == "world" and new.title == "Elevation map, world frame" and new.values[0, 31] == 3.0
+    assert layers["relevance_map_r"].frame == "robot" and layers["goal_robot"].frame == "robot"
+    page = maps_html(e, 0, layers, None, lambda x, y: (3, 4))
+    assert page.count("data:image/png;base64,") == 7 and 'data-layer="elevation_map_w"' in page
+    assert page.count("box-shadow:inset") == 2 * 5  # the drone's and the goal's cells on the five world maps

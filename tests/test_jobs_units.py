@@ -14,20 +14,8 @@ import pytest
 
 from app.commands import RunnerError
 from app.db import Database, EpisodeRow
-from app.jobs import (
-    RUN_PRESETS,
-    JobManager,
-    _pid_runs,
-    config_args,
-    evaluation_system,
-    region_steps_of,
-    region_stop_p_of,
-    run_config,
-    run_progress,
-    run_settings,
-    summarize_rows,
-)
-from app.jobs_view import (
+from app.jobs import JobManager, evaluation_system, run_progress
+from app.jobs_panels import (
     compare_html,
     curve_data,
     curve_scales,
@@ -38,6 +26,9 @@ from app.jobs_view import (
     run_resume_hint,
     summary_html,
 )
+from app.results import region_steps_of, region_stop_p_of, summarize_rows
+from app.run_settings import RUN_PRESETS, run_config, run_settings
+from app.supervisor import pid_runs
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
 
@@ -231,12 +222,13 @@ def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
     assert run_settings("tiny") == RUN_PRESETS["tiny"]
     s = run_settings("paper", iterations=3, learning_rate=1e-4, beta0=None)
     assert (s.iterations, s.learning_rate, s.beta0, s.dataset_size) == (3, 1e-4, 0.92, 500)
+    # the values are checked by the configuration they make (DaggerConfig, TrainConfig), as the request's error
     for kwargs, words in (({"rollouts_per_iteration": 5, "dataset_size": 4}, "cannot exceed M"),
                           ({"iterations": 0}, "iterations must be at least 1"), ({"beta0": 1.5}, "beta0"),
                           ({"learning_rate": 0.0}, "learning_rate"), ({"colour": 1}, "unknown run setting"),
-                          ({"mirror": 1.5}, "mirror")):
+                          ({"mirror": 1.5}, "mirror"), ({"horizon": 0}, "horizon")):
         with pytest.raises(RunnerError, match=words):
-            run_settings("tiny", **kwargs)
+            run_config(preset("tiny"), run_settings("tiny", **kwargs))
     with pytest.raises(RunnerError, match="unknown run preset"):
         run_settings("huge")
     config = run_config(with_overrides(preset("tiny"), {"task.horizon": "60"}), run_settings("tiny", beta0=0.3))
@@ -246,16 +238,30 @@ def test_run_settings_come_from_a_preset_with_overrides_and_are_checked():
     assert not config.camera.shadows
 
 
-def test_the_flags_a_job_gets_rebuild_the_servers_configuration_exactly():
+def test_the_config_file_a_job_gets_rebuilds_the_servers_configuration_exactly(tmp_path):
     from gsmn.cli import build_parser, config_from_args
+    from gsmn.config import ConfigError
 
     config = with_overrides(preset("tiny"), {"task.horizon": "37", "train.learning_rate": "0.000123",
                                              "dagger.beta0": "0.5", "model.channels_last": "false"})
-    flags = config_args(config)
-    assert "--camera.shadows" in flags and "--task.horizon" in flags and "--world.seed" not in flags
-    args = build_parser().parse_args(["eval", "--system", "oracle", "--split", "test", *flags])
-    assert config_from_args(args) == config
-    assert config_args(preset("paper")) == []
+    path = tmp_path / "config.json"
+    path.write_text(config.to_json() + "\n")
+    parse = build_parser().parse_args
+    for verb in (["eval", "--system", "oracle", "--split", "test"], ["collect", "--out", "x"],
+                 ["train", "dagger", "--init", "c", "--data", "d", "--run", "r"],
+                 ["train", "supervised", "--data", "d", "--run", "r"]):
+        assert config_from_args(parse([*verb, "--config", str(path)])) == config
+    # flags still override the file; a preset and a file at once, or a file that is no RunConfig, are refused
+    assert config_from_args(parse(["collect", "--out", "x", "--config", str(path), "--task.horizon", "12"])) == \
+        with_overrides(config, {"task.horizon": "12"})
+    assert config_from_args(parse(["collect", "--out", "x"])) == preset("paper")
+    with pytest.raises(ConfigError, match="not both"):
+        config_from_args(parse(["collect", "--out", "x", "--config", str(path), "--preset", "tiny"]))
+    (tmp_path / "odd.json").write_text(json.dumps({"colour": 1}))
+    with pytest.raises(ConfigError, match="colour"):
+        config_from_args(parse(["collect", "--out", "x", "--config", str(tmp_path / "odd.json")]))
+    with pytest.raises(ConfigError, match="cannot read"):
+        config_from_args(parse(["collect", "--out", "x", "--config", str(tmp_path / "none.json")]))
 
 
 def test_summaries_of_recorded_outcomes_match_the_papers_metrics():
@@ -320,9 +326,9 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
 
 
 def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
-    assert _pid_runs(os.getpid(), "python") or _pid_runs(os.getpid(), "pytest")
-    assert not _pid_runs(os.getpid(), "/no/such/job/folder")
-    assert not _pid_runs(None, "x") and not _pid_runs(2**22 + 12345, "x")
+    assert pid_runs(os.getpid(), "python") or pid_runs(os.getpid(), "pytest")
+    assert not pid_runs(os.getpid(), "/no/such/job/folder")
+    assert not pid_runs(None, "x") and not pid_runs(2**22 + 12345, "x")
 
 
 def test_the_pages_text():

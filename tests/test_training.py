@@ -19,7 +19,7 @@ from safetensors.torch import load_file
 from gsmn.config import preset, with_overrides
 from gsmn.model.checkpoint import CheckpointError, load_checkpoint
 from gsmn.training.dagger import train_dagger
-from gsmn.training.run import RunError, RunFolder, TrainState
+from gsmn.training.run import RunError, RunFolder, TrainState, read_progress
 from gsmn.training.store import EpisodeStore, StoreError
 from gsmn.training.supervised import make_model_and_optimizer, train_supervised
 
@@ -231,6 +231,10 @@ def test_dagger_keeps_m_rollouts_and_mixes_in_the_policy_as_beta_falls(stores, s
     assert collected == [(1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
     assert {r["iteration"] for r in reports if r["phase"] == "train"} == {1, 2}
     assert reports[-1] == {"phase": "done", "iteration": 2, "iterations": 2}
+    # what a monitor (the dashboard) reads of it: the iterations planned come from the run's config.json
+    p = read_progress(tmp_path / "dagger")
+    assert (p.phase, p.done, p.iterations, p.fraction, len(p.log)) == ("done", 2, 2, 1.0, 2)
+    assert read_progress(tmp_path / "not-started") is None
     log = [json.loads(line) for line in (tmp_path / "dagger" / "log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2]
     assert [r["beta"] for r in log] == [0.5, 0.25]
@@ -282,6 +286,8 @@ def test_dagger_stopped_mid_iteration_resumes_to_the_same_state(stores, supervis
     train_dagger(tmp_path / "parts", supervised_checkpoint, DAGGER, train, log=lambda s: None,
                  stop_after=lambda state: state.batch > 0 and next(stops, False))
     assert not (tmp_path / "parts" / "log.jsonl").is_file() or len(RunFolder(tmp_path / "parts").read_log()) < 2
+    p = read_progress(tmp_path / "parts")  # stopped in iteration 1's training: a quarter to half of 2 iterations
+    assert p.phase in ("collect", "train") and p.done == 0 and 0.25 <= p.fraction <= 0.5
     # Resumed with another number of rollout workers (rollouts are seeded each, not per worker): nothing changes.
     more_workers = with_overrides(DAGGER, {"dagger.workers": "2"})
     parts = train_dagger(tmp_path / "parts", supervised_checkpoint, more_workers, train, log=lambda s: None)

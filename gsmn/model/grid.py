@@ -17,9 +17,17 @@ those normalised coordinates.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+
+
+def world_cell(x, y, field_size: float, cells: int, floor=math.floor):
+    """The (row, col) of the north-up world-map cell holding the point (x, y), not clamped (a point off the map
+    gives an index outside [0, cells)). Numbers with `math.floor` (the default), tensors with `torch.floor`."""
+    s = field_size / cells
+    return floor((field_size - y) / s), floor(x / s)
 
 
 @dataclass(frozen=True)
@@ -45,8 +53,7 @@ class MapGeometry:
 
     def world_cell_of(self, xy: torch.Tensor) -> torch.Tensor:
         """(..., 2) integer (row, col) of the world cell containing each point, clamped into the map."""
-        col = torch.floor(xy[..., 0] / self.cell_size)
-        row = torch.floor((self.field_size - xy[..., 1]) / self.cell_size)
+        row, col = world_cell(xy[..., 0], xy[..., 1], self.field_size, self.map_size, torch.floor)
         rc = torch.stack([row, col], dim=-1).clamp(0, self.map_size - 1)
         return rc.long()
 

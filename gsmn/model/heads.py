@@ -11,6 +11,7 @@ probabilities of any map cell.
 
 from __future__ import annotations
 
+import numpy as np
 import torch.nn as nn
 
 
@@ -23,3 +24,18 @@ class AuxiliaryHeads(nn.Module):
         self.goal = nn.Linear(goal_channels, 2) if goal_channels else None
         self.language_landmark = nn.Linear(embed_dim, num_classes)
         self.language_side = nn.Linear(embed_dim, num_sides)
+
+
+# -- the heads read on recorded maps (numpy: the dashboard, failure attribution) ---------------------------------
+def softmax(logits: np.ndarray, axis: int = 0) -> np.ndarray:
+    z = logits - logits.max(axis=axis, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def positive_probability(maps: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """A binary head Linear(C -> 2) on every cell of maps (C, H, W) -> P(class 1) (H, W)."""
+    C, H, W = maps.shape
+    logits = np.einsum("kc,cn->kn", weight.astype(np.float32), maps.reshape(C, -1).astype(np.float32)) \
+        + bias.astype(np.float32)[:, None]  # einsum, not @: threaded BLAS spins for ms on this tiny product
+    return softmax(logits, axis=0)[1].reshape(H, W)

@@ -9,7 +9,8 @@
                           leaves either the previous state or the new one, never half of one.
       checkpoint/         the latest model checkpoint (gsmn.model.checkpoint format)
       progress.json       where the run is now (phase, epoch or iteration, batch of batches, ...), rewritten
-                          atomically at most once a second; for monitors such as the dashboard
+                          atomically at most once a second; monitors such as the dashboard read it, with the log
+                          and the state, through `read_progress`
 
 Optimizer state is saved with torch.save and read back with weights_only=True: tensors and plain
 containers only, never code.
@@ -176,6 +177,62 @@ class RunFolder:
         records = self.read_log()
         if len(records) > epochs:
             _write_atomic(self.log_path, "".join(json.dumps(r) + "\n" for r in records[:epochs]))
+
+
+@dataclass(frozen=True)
+class RunProgress:
+    """Where a DAggerFM run is, as its folder tells a monitor (`read_progress`)."""
+
+    phase: str  # "start", "discard", "collect", "train", "validate" or "done"
+    done: int  # iterations finished (and logged)
+    iterations: int  # iterations planned
+    fraction: float  # of the whole run, in [0, 1]
+    log: list[dict]  # one record per finished iteration (log.jsonl)
+    iteration: int | None = None  # the iteration the last report is about (progress.json)
+    rollouts: tuple[int, int] | None = None  # (done, of) this iteration's rollouts, while collecting
+    beta: float | None = None  # the expert's share of this iteration's rollouts, while collecting
+    batches: tuple[int, int] | None = None  # (done, of) this iteration's batches, while training
+    loss: float | None = None  # the last batch's loss, while training
+
+
+def read_progress(run_dir: Path | str, iterations: int | None = None) -> RunProgress | None:
+    """Where the DAggerFM run in `run_dir` is, from its log, its last progress report and its state, or None before
+    it has started (no config.json yet). `iterations`: those planned (default: the saved config's)."""
+    run = RunFolder(run_dir)
+    config_path = run.root / "config.json"
+    if not config_path.is_file():
+        return None
+    if iterations is None:
+        iterations = RunConfig.from_dict(json.loads(config_path.read_text())).dagger.iterations
+    log = run.read_log()
+    done = len(log)
+    p = run.read_progress() or {}
+    phase, within, extra = p.get("phase"), 0.0, {}
+    if phase == "collect" and p.get("rollouts"):
+        extra["rollouts"] = (int(p.get("done", 0)), int(p["rollouts"]))
+        extra["beta"] = float(p.get("beta", 0.0))
+        within = 0.5 * extra["rollouts"][0] / extra["rollouts"][1]
+    elif phase == "train" and p.get("batches"):
+        extra["batches"] = (int(p.get("batch", 0)), int(p["batches"]))
+        extra["loss"] = float(p["loss"]) if p.get("loss") is not None else None
+        within = 0.5 + 0.5 * extra["batches"][0] / extra["batches"][1]
+    elif phase in ("validate", "done"):
+        # The iteration's log line is written before the next progress report: once it is there, the "validate"
+        # still in progress.json belongs to a finished iteration, already counted in `done`.
+        stale = phase == "validate" and int(p.get("iteration", done + 1)) <= done
+        within = 1.0 if phase == "done" else 0.0 if stale else 0.95
+        extra["iteration"] = int(p.get("iteration", done))
+    else:  # no report yet in this iteration: the phase the saved state is in
+        try:
+            state = json.loads((run.state_dir / "state.json").read_text())
+        except (OSError, ValueError):
+            state = {}
+        phase = (state.get("extra") or {}).get("phase", "start")
+    if done >= iterations:
+        phase, within = "done", 0.0
+    fraction = min(1.0, (done + within) / iterations)
+    return RunProgress(phase=phase or "start", done=done, iterations=iterations, fraction=round(fraction, 4), log=log,
+                       **extra)
 
 
 def _write_atomic(path: Path, text: str) -> None:

@@ -1,0 +1,203 @@
+"""What the page's "Failures" and "Fine-tune" tabs say, as pure functions of the recorded jobs (`app.db`): an
+evaluation's label, summary and attribution bars, an episode's card, a run's table, curves and resume hint, and the
+before/after comparison (HTML for viser's panels)."""
+
+from __future__ import annotations
+
+import html
+import math
+
+import numpy as np
+
+from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
+from app.panels import region_text
+from app.supervisor import resumable
+from gsmn.attribution import STAGE_TITLES, reported_stages
+
+
+def short_path(path: str) -> str:
+    parts = path.rstrip("/").split("/")
+    return "/".join(parts[-3:]) if len(parts) > 3 else path
+
+
+def error_summary(error: str | None) -> str:
+    """The first line of a job's error and, when its output was attached, the last line of that (the exception)."""
+    lines = [line for line in (error or "").splitlines() if line.strip()]
+    if not lines:
+        return ""
+    return lines[0].removesuffix("; its output ends:") + (f": {lines[-1].strip()}" if len(lines) > 1 else "")
+
+
+def note_html(text: str) -> str:
+    return f'<div style="padding:8px;font-size:13px;opacity:.7">{html.escape(text)}</div>'
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.0f} %"
+
+
+def evaluation_label(e: Evaluation) -> str:
+    s = e.summary or {}
+    if e.system == "oracle":
+        what = "expert"
+    elif e.run_id is not None:
+        what = f"run-{e.run_id}"
+    else:
+        what = (e.checkpoint or e.system).rstrip("/").split("/")[-1]
+    status = "" if e.status == FINISHED else f", {e.status}"
+    return f"#{e.id} {what}: {e.label}, {_pct(s.get('success'))} success{status}"
+
+
+def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] | None = None) -> str:
+    s = e.summary or {}
+    failures = sum(stages.values())
+    bars = []
+    for stage in (*reported_stages(stages), "unattributed"):
+        n = stages.get(stage, 0)
+        if stage == "unattributed" and not n:
+            continue
+        width = 100 * n / failures if failures else 0
+        bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
+                    f'<span style="width:104px">{STAGE_TITLES.get(stage, "no maps recorded")}</span>'
+                    f'<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
+                    f'<span style="display:block;width:{width:.0f}%;height:10px;background:{_STAGE_COLOURS[stage]};'
+                    f'border-radius:2px"></span></span><b style="width:24px;text-align:right">{n}</b></div>')
+    distance = s.get("mean_distance")
+    distance = "n/a" if distance is None or math.isnan(distance) else f"{distance:.1f} m"
+    hint = resume_hint(e)
+    return (f'<div class="gsmn-evaluation" data-id="{e.id}" data-status="{e.status}" style="font-size:13px">'
+            f"<div><b>{e.done}/{e.total}</b> episodes · success <b>{_pct(s.get('success'))}</b> · landmark "
+            f"{_pct(s.get('landmark_success'))} · mean distance {distance}</div>"
+            f'<div style="margin:4px 0 2px;font-weight:600">Failures by attribution ({failures})</div>'
+            f"{''.join(bars)}{region_summary(regions)}"
+            + (f'<div class="gsmn-resumable" style="font-size:12px;margin-top:4px">{hint}</div>' if hint else "")
+            + "</div>")
+
+
+def resume_hint(e: Evaluation) -> str:
+    """For a resumable evaluation with episodes left: that Resume flies the rest (else "")."""
+    if not resumable(e) or e.done >= e.total:
+        return ""
+    if not e.done:
+        return f"Stopped before any episode ended: <b>Resume</b> (above) flies all {e.total}."
+    return (f"Stopped at {e.done} of {e.total} episodes: <b>Resume</b> (above) keeps those and flies the other "
+            f"{e.total - e.done}.")
+
+
+def region_summary(regions: dict[str, int] | None) -> str:
+    """One line under the attribution bars: how many failures flew through the success region without a STOP there
+    (stopping failures) and how many never entered it (navigation failures)."""
+    if not regions or not regions.get("entered", 0) + regions.get("never", 0):
+        return ""
+    unknown = regions.get("unknown", 0)
+    rest = f"; {unknown} recorded without it" if unknown else ""
+    return (f'<div class="gsmn-regions" style="font-size:12px;margin-top:4px" data-entered="{regions["entered"]}" '
+            f'data-never="{regions["never"]}">Success region: <b>{regions["entered"]}</b> flew through it without a '
+            f'STOP there, <b>{regions["never"]}</b> never entered it{rest}</div>')
+
+
+_STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
+                  "goal_or_control": "#d35400", "unattributed": "#999"}
+
+
+def episode_label(r: EpisodeRow) -> str:
+    mark = "✓" if r.success else "✗"
+    stage = f" · {r.stage}" if r.stage else ""
+    return f"▶ {r.env_id} {mark} {r.side} of the {r.landmark} · {r.goal_distance:.1f} m{stage}"
+
+
+def episode_html(r: EpisodeRow, note: str) -> str:
+    a = r.attribution or {}
+    rows = [("instruction", html.escape(r.instruction)), ("success", "yes" if r.success else "no"),
+            ("landmark success", "yes" if r.landmark_success else "no"),
+            ("distance to goal", f"{r.goal_distance:.1f} m"), ("ambiguous", "yes" if r.ambiguous else "no"),
+            ("ended", f"said STOP after {r.steps} steps" if r.stopped else f"horizon after {r.steps} steps")]
+    if not r.success and r.region_steps is not None:
+        rows.append(("success region", region_text(r.region_steps, r.region_stop_p, ("<b>", "</b>"))))
+    if a:
+        rows += [("perceived", ("yes" if a["perceived"] else "no") + (
+                    f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
+                    if a["observed"] else " (never seen)")),
+                 ("grounded", ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
+                     f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})"
+                     if a.get("other_landmark") else ")")),
+                 ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
+                  else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
+                                                                    f"goal, P {a['goal_peak_p']:.2f})")]
+    stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
+    verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
+               f"{html.escape(STAGE_TITLES.get(stage, stage))}</div>"
+               f"<div style='margin-bottom:4px'>{html.escape(a.get('reason', ''))}</div>") if a or r.success else ""
+    table = "".join(f"<tr><td style='opacity:.7;padding-right:8px'>{k}</td><td>{v}</td></tr>" for k, v in rows)
+    return (f'<div class="gsmn-episode" data-env="{r.env_id}" data-evaluation="{r.evaluation_id}" '
+            f'style="font-size:13px;padding-right:8px"><div style="font-weight:600">Environment {r.env_id}</div>'
+            f"{verdict}<table>{table}</table><div class='gsmn-replay' style='margin-top:4px'>{note}</div></div>")
+
+
+def run_resume_hint(r: Run) -> str:
+    """For a cancelled or failed run the dashboard started: where Resume takes it up (else "")."""
+    if not resumable(r):
+        return ""
+    done = len(r.metrics or [])
+    return (f" **Resume** continues it from iteration {done + 1} of {r.settings['iterations']}" if done else
+            " **Resume** starts it again (no iteration had finished)") + "; what its folder saved is kept."
+
+
+def runs_html(runs: list[Run]) -> str:
+    if not runs:
+        return note_html("No run yet.")
+    head = "".join(f"<th style='text-align:left;padding-right:6px'>{h}</th>" for h in
+                   ("run", "status", "progress", "environments", "loss"))
+    body = []
+    for r in reversed(runs[-12:]):
+        p = r.progress or {}
+        loss = r.metrics[-1]["train"].get("loss") if r.metrics else None
+        envs = f"{len(r.env_ids)} chosen" if r.env_ids else "train split"
+        body.append(f"<tr data-run='{r.id}' data-status='{r.status}'><td>run-{r.id}</td><td>{r.status}</td>"
+                    f"<td>{100 * float(p.get('fraction', 0)):.0f} %</td><td>{envs}</td>"
+                    f"<td>{'' if loss is None else f'{loss:.3f}'}</td></tr>")
+    return f"<table class='gsmn-runs' style='font-size:12px'><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def curve_scales(run: Run | None) -> dict:
+    """The chart's x axis spans the run's planned iterations, from 1: the curves grow across it as the run goes
+    (uPlot's own range for a single point is 0-100, which read as a hundred iterations)."""
+    if run is None:
+        return {"x": {"time": False}}
+    planned = int(run.settings.get("iterations") or 0)
+    last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1)
+    return {"x": {"time": False, "range": (1.0, float(max(planned, last, 2)))}}
+
+
+def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
+    """The run's curves per iteration: loss, action loss, the learner's share of the steps flown and the share
+    of the iteration's rollouts that succeeded (NaN where a record lacks a figure)."""
+    if not metrics:
+        return np.zeros(1), *(np.full(1, np.nan) for _ in range(4))
+    it = np.array([m.get("iteration", k + 1) for k, m in enumerate(metrics)], np.float64)
+    loss = np.array([m.get("train", {}).get("loss", np.nan) for m in metrics], np.float64)
+    action = np.array([m.get("train", {}).get("loss_action", np.nan) for m in metrics], np.float64)
+    learner = np.array([m.get("learner_step_fraction", np.nan) for m in metrics], np.float64)
+    succeeded = np.array([m.get("rollout_success", np.nan) for m in metrics], np.float64)
+    return it, loss, action, learner, succeeded
+
+
+def compare_html(c: dict, after: Evaluation | None) -> str:
+    def cell(b: dict) -> str:
+        mark = "<b style='color:#1e8449'>✓</b>" if b["success"] else "<b style='color:#c0392b'>✗</b>"
+        return f"{mark} {b['goal_distance']:.1f} m{' · ' + b['stage'] if b['stage'] else ''}"
+
+    if after is not None and after.status in ACTIVE:
+        return note_html(f"Rerunning: {after.done} of {after.total} episodes done.")
+    rows = "".join(f"<tr><td>{r['env_id']}</td><td>{cell(r['before'])}</td><td>{cell(r['after'])}</td></tr>"
+                   for r in c["episodes"])
+
+    def dist(v) -> str:
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.1f} m"
+
+    return (f"<div class='gsmn-compare' data-before='{c['before']}' data-after='{c['after']}' style='font-size:12px'>"
+            f"<div style='font-size:13px;margin-bottom:4px'>Evaluation {c['before']} → {c['after']}: success "
+            f"<b>{_pct(c['before_success'])} → {_pct(c['after_success'])}</b>, mean distance "
+            f"{dist(c['before_mean_distance'])} → {dist(c['after_mean_distance'])}; {c['fixed']} fixed, "
+            f"{c['broken']} broken.</div><table><tr><th style='text-align:left'>env</th><th style='text-align:left'>"
+            f"before</th><th style='text-align:left'>after</th></tr>{rows}</table></div>")

@@ -1,0 +1,112 @@
+"""What the browser page's UI thread is told (`app.viewer`): one small frozen record per kind of event, put on its
+queue by the runner's thread (what the simulator did), viser's callbacks (what a person did) and command answers,
+and dispatched by type."""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+from dataclasses import dataclass
+
+from app.commands import Grounding, WorldShown
+from app.recording import Episode
+
+
+class Event:
+    """Any event on the viewer's queue."""
+
+
+# -- from the runner --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class WorldChanged(Event):
+    shown: WorldShown
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeStarted(Event):
+    episode: Episode
+
+
+@dataclass(frozen=True, eq=False)
+class StepRecorded(Event):
+    episode: Episode
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeEnded(Event):
+    episode: Episode
+
+
+@dataclass(frozen=True, eq=False)
+class StateChanged(Event):
+    """The episode was paused or resumed."""
+
+    episode: Episode | None
+
+
+# -- answers to commands the page posted --------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ShowAnswered(Event):
+    """The runner answered a ShowEnv."""
+
+    future: Future
+
+
+@dataclass(frozen=True, eq=False)
+class StartAnswered(Event):
+    """The runner answered a StartEpisode (queued it, or refused it)."""
+
+    future: Future
+
+
+@dataclass(frozen=True, eq=False)
+class Grounded(Event):
+    """A what-if instruction's grounding at a step, which arrived after the step was drawn without it."""
+
+    key: tuple[int, int, str]  # (episode id, step, instruction)
+    result: Grounding | str  # the grounding, or why there is none
+
+
+# -- from a person ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CursorMoved(Event):
+    """The timeline slider was moved to a step."""
+
+    step: int
+
+
+@dataclass(frozen=True)
+class FollowSet(Event):
+    follow: bool
+
+
+@dataclass(frozen=True)
+class PlaybackPressed(Event):
+    button: str  # the playback button's label
+
+
+@dataclass(frozen=True)
+class WhatIf(Event):
+    text: str | None  # the what-if instruction to ground; None: clear it
+
+
+@dataclass(frozen=True)
+class GroundClicked(Event):
+    """A point of the ground was clicked: inspect its map cell."""
+
+    x: float
+    y: float
+
+
+@dataclass(frozen=True)
+class OptionsChanged(Event):
+    """A display option changed: redraw."""
+
+
+@dataclass(frozen=True)
+class TaskVisibility(Event):
+    """The 'show the task' box was toggled."""
+
+
+@dataclass(frozen=True)
+class Close(Event):
+    """The viewer is closing: stop the UI thread."""
