@@ -19,6 +19,7 @@ from gsmn.world.spec import WorldSpec
 
 POLICIES = ("model", "mirror", "expert")  # "mirror": the model as a test-time mirror ensemble
 MAX_ENV_ID = 2**31 - 1
+MAX_QUEUED = 8  # episodes waiting to fly behind the live one; more are refused (each flies for up to minutes)
 
 
 # -- errors the API turns into 4xx answers --------------------------------------------------------------------
@@ -75,6 +76,11 @@ class StepOnce(Command):
 @dataclass
 class Cancel(Command):
     pass
+
+
+@dataclass
+class CancelEpisode(Command):
+    episode_id: int  # a queued episode is dropped from the queue, the live one ends
 
 
 @dataclass

@@ -155,9 +155,12 @@ class Dashboard:
                 raise Conflict(f"no default checkpoint: {self.runner.checkpoint_message} Name one.")
             return Path(self.runner.default_model)
         path = self.runner._path_of(ref)
-        if not (path / "meta.json").is_file():
-            raise RunnerError(f"no checkpoint at {path}")
-        return path.resolve()
+        try:
+            if not (path / "meta.json").is_file():
+                raise RunnerError(f"no checkpoint at {path}")
+            return path.resolve()
+        except OSError as e:
+            raise RunnerError(f"no checkpoint at {path}: {e.strerror or e}") from e
 
     def close(self) -> None:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
