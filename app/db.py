@@ -82,7 +82,7 @@ CREATE TABLE IF NOT EXISTS runs (
     created REAL NOT NULL,
     started REAL,
     finished REAL,
-    settings TEXT NOT NULL,         -- JSON: app.jobs.RunSettings
+    settings TEXT NOT NULL,         -- JSON: app.run_settings.RunSettings
     env_ids TEXT,                   -- JSON list, or NULL for the train split
     source_evaluation_id INTEGER,   -- the evaluation whose failures it trains on
     init_checkpoint TEXT NOT NULL,

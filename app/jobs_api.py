@@ -13,7 +13,8 @@ from pydantic import BaseModel, Field
 
 from app.commands import NotFound, RunnerError, StartEpisode
 from app.db import EpisodeRow, Evaluation, Run
-from app.jobs import JobManager, run_settings
+from app.jobs import JobManager
+from app.run_settings import run_settings
 from app.runner import Runner
 from app.schema import EnvId, Id, Strict, Text, path_id, responses
 

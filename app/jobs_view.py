@@ -23,10 +23,12 @@ import viser.uplot
 
 from app.commands import RunnerError, RunnerListener, StartEpisode
 from app.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
-from app.jobs import RUN_PRESETS, JobManager, resumable, run_settings
+from app.jobs import JobManager
 from app.jobs_api import replay_policy
 from app.panels import error_html, region_text
 from app.recording import Episode
+from app.run_settings import RUN_PRESETS, run_settings
+from app.supervisor import resumable
 from gsmn.attribution import STAGE_TITLES, STAGES, reported_stages
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS

@@ -157,7 +157,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "70,71,72", "--json",
                     str(oracle), "--preset", "tiny", "--progress", str(progress)], check=True, capture_output=True)
     # the progress lines (what the dashboard reads) carry the steps inside the success region, without trajectories
-    from app.jobs import region_steps_of
+    from app.results import region_steps_of
 
     lines = [json.loads(x) for x in progress.read_text().splitlines()]
     records = {e["env_id"]: e for e in json.loads(oracle.read_text())["episodes"]}

@@ -14,19 +14,7 @@ import pytest
 
 from app.commands import RunnerError
 from app.db import Database, EpisodeRow
-from app.jobs import (
-    RUN_PRESETS,
-    JobManager,
-    _pid_runs,
-    config_args,
-    evaluation_system,
-    region_steps_of,
-    region_stop_p_of,
-    run_config,
-    run_progress,
-    run_settings,
-    summarize_rows,
-)
+from app.jobs import JobManager, evaluation_system, run_progress
 from app.jobs_view import (
     compare_html,
     curve_data,
@@ -38,6 +26,9 @@ from app.jobs_view import (
     run_resume_hint,
     summary_html,
 )
+from app.results import region_steps_of, region_stop_p_of, summarize_rows
+from app.run_settings import RUN_PRESETS, config_args, run_config, run_settings
+from app.supervisor import pid_runs
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
 
@@ -320,9 +311,9 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
 
 
 def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
-    assert _pid_runs(os.getpid(), "python") or _pid_runs(os.getpid(), "pytest")
-    assert not _pid_runs(os.getpid(), "/no/such/job/folder")
-    assert not _pid_runs(None, "x") and not _pid_runs(2**22 + 12345, "x")
+    assert pid_runs(os.getpid(), "python") or pid_runs(os.getpid(), "pytest")
+    assert not pid_runs(os.getpid(), "/no/such/job/folder")
+    assert not pid_runs(None, "x") and not pid_runs(2**22 + 12345, "x")
 
 
 def test_the_pages_text():

@@ -1,0 +1,103 @@
+"""A fine-tuning run's settings: the presets the dashboard offers (tiny, small, paper), a preset with fields
+overridden, and how the settings become the run's configuration and the flags that carry it to a job's command."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, fields, replace
+
+from app.commands import RunnerError
+from gsmn.config import ConfigError, RunConfig, leaf_fields, preset, with_overrides
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """A DAggerFM fine-tuning run (gsmn.config.DaggerConfig and TrainConfig, plus where its data comes from)."""
+
+    preset: str
+    iterations: int  # DAggerFM iterations, one epoch each
+    rollouts_per_iteration: int  # N_D
+    dataset_size: int  # M
+    beta0: float  # the expert acts with probability beta0 ** i in iteration i
+    learning_rate: float
+    horizon: int | None  # steps per rollout; None: the server's task.horizon
+    batch_size: int
+    workers: int  # rollout worker processes
+    threads: int  # torch threads of the training process
+    expert_data: str | None = None  # an expert episode store to start from; None: collect one in the data folder
+    mirror: float = 0.0  # share of training episodes mirrored east-west (train.mirror; not in the paper)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+RUN_PRESETS = {
+    # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4
+    "tiny": RunSettings("tiny", iterations=2, rollouts_per_iteration=2, dataset_size=4, beta0=0.5,
+                        learning_rate=1e-3, horizon=30, batch_size=2, workers=1, threads=1),
+    # some tens of minutes: a first look at what fine-tuning on failures does
+    "small": RunSettings("small", iterations=10, rollouts_per_iteration=8, dataset_size=40, beta0=0.92,
+                         learning_rate=1e-3, horizon=None, batch_size=4, workers=1, threads=1),
+    # the original's settings (gsmn.config.DaggerConfig)
+    "paper": RunSettings("paper", iterations=150, rollouts_per_iteration=24, dataset_size=500, beta0=0.92,
+                         learning_rate=1e-3, horizon=None, batch_size=4, workers=2, threads=1),
+}
+
+
+def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
+    """A preset with any fields overridden (None leaves the preset's value)."""
+    if preset_name not in RUN_PRESETS:
+        raise RunnerError(f"unknown run preset {preset_name!r}; choose from {', '.join(RUN_PRESETS)}")
+    names = {f.name for f in fields(RunSettings)} - {"preset"}
+    unknown = set(overrides) - names
+    if unknown:
+        raise RunnerError(f"unknown run setting(s): {', '.join(sorted(unknown))}")
+    s = replace(RUN_PRESETS[preset_name], **{k: v for k, v in overrides.items() if v is not None})
+    for name in ("iterations", "rollouts_per_iteration", "dataset_size", "batch_size", "workers", "threads"):
+        if getattr(s, name) < 1:
+            raise RunnerError(f"{name} must be at least 1, got {getattr(s, name)}")
+    if s.rollouts_per_iteration > s.dataset_size:
+        raise RunnerError(f"N_D (rollouts_per_iteration, {s.rollouts_per_iteration}) cannot exceed M "
+                          f"(dataset_size, {s.dataset_size})")
+    if not 0 <= s.beta0 <= 1:
+        raise RunnerError(f"beta0 must be in [0, 1], got {s.beta0}")
+    if not 0 <= s.mirror <= 1:
+        raise RunnerError(f"mirror (the share of episodes mirrored) must be in [0, 1], got {s.mirror}")
+    if not s.learning_rate > 0:
+        raise RunnerError(f"learning_rate must be positive, got {s.learning_rate}")
+    if s.horizon is not None and s.horizon < 1:
+        raise RunnerError(f"horizon must be at least 1, got {s.horizon}")
+    return s
+
+
+def config_args(config: RunConfig) -> list[str]:
+    """Command-line flags that rebuild `config` from the paper preset (`gsmn <verb> ... <flags>`)."""
+    base, args = preset("paper"), []
+    for path, _, _ in leaf_fields(RunConfig):
+        value, default = config, base
+        for part in path.split("."):
+            value, default = getattr(value, part), getattr(default, part)
+        if value != default:
+            args += ["--" + path.replace("_", "-"), str(value).lower() if isinstance(value, bool) else str(value)]
+    return args
+
+
+def run_config(config: RunConfig, s: RunSettings) -> RunConfig:
+    """The server's configuration with a run's settings."""
+    overrides = {"dagger.iterations": s.iterations, "dagger.rollouts_per_iteration": s.rollouts_per_iteration,
+                 "dagger.dataset_size": s.dataset_size, "dagger.beta0": s.beta0, "dagger.workers": s.workers,
+                 "train.learning_rate": s.learning_rate, "train.batch_size": s.batch_size, "train.threads": s.threads,
+                 "train.mirror": s.mirror}
+    if s.horizon is not None:
+        overrides["task.horizon"] = s.horizon
+    try:
+        return with_overrides(config, {k: str(v) for k, v in overrides.items()})
+    except ConfigError as e:
+        raise RunnerError(str(e)) from e
+
+
+def expert_store_key(config: RunConfig) -> str:
+    """Expert episodes depend on the world, drone, camera, task and expert settings: stores are kept apart by them."""
+    parts = {k: config.to_dict()[k] for k in ("world", "drone", "camera", "task", "expert")}
+    return hashlib.sha1(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:10]
