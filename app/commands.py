@@ -37,6 +37,14 @@ class Conflict(RunnerError):
     status = 409
 
 
+class Forbidden(RunnerError):
+    status = 403
+
+
+class TooLarge(RunnerError):
+    status = 413
+
+
 # -- commands -------------------------------------------------------------------------------------------------
 @dataclass
 class Command:

@@ -13,8 +13,8 @@ from pydantic import BaseModel, Field
 
 from app.commands import NotFound, RunnerError, StartEpisode
 from app.db import EpisodeRow, Evaluation, Run
-from app.jobs import JobManager
-from app.run_settings import run_settings
+from app.jobs import CORES, MAX_IMPORT_BYTES, JobManager
+from app.run_settings import MAX_ROLLOUTS, run_settings
 from app.runner import Runner
 from app.schema import EnvId, Id, Strict, Text, path_id, responses
 
@@ -37,16 +37,17 @@ class EvaluationRequest(Strict):
     baseline_id: Id | None = Field(None, description="rerun the episodes of this evaluation (before/after); "
                                     "also the default environments")
     run_id: Id | None = Field(None, description="evaluate this finished fine-tuning run's checkpoint")
-    workers: int = Field(1, ge=1, le=16, description="worker processes (one core each; 1 leaves the live view "
-                         "its share)")
+    workers: int = Field(1, ge=1, le=CORES, description="worker processes, at most this machine's cores (one core "
+                         "each; 1 leaves the live view its share)")
     mirror_ensemble: bool = Field(False, description="fly the model as a test-time mirror ensemble (it also flies "
                                   "the mirror image of each step and the two actions are averaged; not in the paper)")
 
 
 class ImportRequest(Strict):
-    path: Text = Field(..., min_length=1, max_length=1000, description="a `gsmn eval --json` file")
+    path: Text = Field(..., min_length=1, max_length=1000, description="a `gsmn eval --json` file inside the data "
+                       f"folder (relative: to it), a regular file of at most {MAX_IMPORT_BYTES // 2**20} MiB")
     record_dir: Text | None = Field(None, min_length=1, max_length=1000, description="its `--record` folder, for "
-                                    "failure attribution")
+                                    "failure attribution, inside the data folder too")
 
 
 class ReplayRequest(Strict):
@@ -109,16 +110,21 @@ class Replayed(BaseModel):
 
 class RunRequest(Strict):
     preset: Literal["tiny", "small", "paper"] = Field("tiny", description="tiny: a minute or two on a 2-core "
-                                                      "machine; small: tens of minutes; paper: the original's")
-    iterations: int | None = Field(None, ge=1, le=10000)
-    rollouts_per_iteration: int | None = Field(None, ge=1, le=10000, description="N_D")
+                                                      "machine; small: tens of minutes; paper: the original's "
+                                                      f"settings, whose 150 x 24 rollouts are more than the "
+                                                      f"{MAX_ROLLOUTS} the dashboard launches: give fewer iterations")
+    iterations: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description=f"iterations x N_D at most "
+                                   f"{MAX_ROLLOUTS}")
+    rollouts_per_iteration: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description="N_D")
     dataset_size: int | None = Field(None, ge=1, le=100000, description="M")
     beta0: float | None = Field(None, ge=0, le=1)
     learning_rate: float | None = Field(None, gt=0, le=1)
     horizon: int | None = Field(None, ge=1, le=1000, description="steps per rollout")
     batch_size: int | None = Field(None, ge=1, le=64)
-    workers: int | None = Field(None, ge=1, le=16)
-    threads: int | None = Field(None, ge=1, le=64)
+    workers: int | None = Field(None, ge=1, le=CORES, description="rollout worker processes, at most this machine's "
+                                "cores")
+    threads: int | None = Field(None, ge=1, le=CORES, description="torch threads of the training, at most this "
+                                "machine's cores")
     mirror: float | None = Field(None, ge=0, le=1, description="share of training episodes mirrored east-west "
                                  "(left and right swapped; not in the paper); omitted: the preset's, 0")
     expert_data: Text | None = Field(None, max_length=1000, description="an expert episode store (gsmn collect) "

@@ -32,6 +32,8 @@ class RunSettings:
         return asdict(self)
 
 
+MAX_ROLLOUTS = 2000  # iterations x N_D of a run launched from the dashboard
+
 RUN_PRESETS = {
     # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4
     "tiny": RunSettings("tiny", iterations=2, rollouts_per_iteration=2, dataset_size=4, beta0=0.5,
@@ -68,6 +70,10 @@ def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
         raise RunnerError(f"learning_rate must be positive, got {s.learning_rate}")
     if s.horizon is not None and s.horizon < 1:
         raise RunnerError(f"horizon must be at least 1, got {s.horizon}")
+    if s.iterations * s.rollouts_per_iteration > MAX_ROLLOUTS:
+        raise RunnerError(f"{s.iterations} iterations of {s.rollouts_per_iteration} rollouts are more than the "
+                          f"dashboard launches (at most {MAX_ROLLOUTS} rollouts in all; the paper's 150 x 24 take "
+                          "days on a few cores): run `gsmn train dagger` from a shell for that")
     return s
 
 

@@ -124,11 +124,16 @@ class Dashboard:
         # One thread: the runner does one small step at a time, and on a busy machine two threads spin
         # against each other (measured: an inference step went from 8 ms to 200-500 ms under load).
         torch.set_num_threads(torch_threads)
-        self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
-                             require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
-                             max_episodes=max_episodes).start()
+        # the record first: a damaged or empty one is refused (naming it) before the simulator starts
         self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
                                max_evaluations=max_evaluations)
+        try:
+            self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
+                                 require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
+                                 max_episodes=max_episodes).start()
+        except BaseException:
+            self.jobs.close()
+            raise
         self.runner.extra_checkpoints = self.jobs.checkpoints
         token = resolve_token(token, host)
         api_socket = bind_socket(host, api_port)  # first: the checks of both servers need both ports

@@ -38,7 +38,7 @@ def raw(client: httpx.Client, path: str, body: str) -> httpx.Response:
 
 def healthy(d: Dashboard, client: httpx.Client) -> None:
     assert client.get("/api/health").status_code == 200
-    assert not d.jobs._handles, "a refused request must not hold a job slot"
+    assert not d.jobs.supervisor.handles, "a refused request must not hold a job slot"
 
 
 def test_huge_ids_are_refused_and_the_slot_stays_free(server):
@@ -60,7 +60,7 @@ def test_huge_ids_are_refused_and_the_slot_stays_free(server):
     assert started.status_code == 201, started.text
     assert client.delete(f"/api/evaluations/{started.json()['id']}").status_code == 200
     deadline = time.monotonic() + 60
-    while d.jobs._handles and time.monotonic() < deadline:
+    while d.jobs.supervisor.handles and time.monotonic() < deadline:
         time.sleep(0.2)
     assert client.get(f"/api/evaluations/{started.json()['id']}").json()["status"] == "cancelled"
 
