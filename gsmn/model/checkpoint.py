@@ -228,6 +228,12 @@ def _check_weights(folder: Path, kind: str, model: Model, tensors: dict[str, tor
     wrong = [f"{k} (saved {tuple(tensors[k].shape)}, model {tuple(expected[k].shape)})"
              for k in sorted(set(expected) & set(tensors)) if tensors[k].shape != expected[k].shape]
     if not (missing or unexpected or wrong):
+        # a diverged training run saves NaN or infinite weights: such a model loads, but "flies" by sitting still
+        broken = [k for k in sorted(tensors) if tensors[k].is_floating_point() and not torch.isfinite(tensors[k]).all()]
+        if broken:
+            raise CheckpointError(f"checkpoint {folder}: weights.safetensors holds NaN or infinite values in "
+                                  f"{', '.join(broken[:5])}" + (f", ... ({len(broken)} tensors)" if len(broken) > 5
+                                                                else ""))
         return
 
     def listing(names: list[str]) -> str:
