@@ -66,13 +66,13 @@ def api(tmp_path_factory):
             proc.wait()
 
 
-def test_the_api_keeps_to_its_openapi_schema(api):
+def test_the_api_keeps_to_its_openapi_schema(api, tmp_path):
     url, proc, lines = api
     st = Path(sys.executable).with_name("schemathesis")
     result = subprocess.run([str(st), "--config-file", str(CONFIG), "run", f"{url}/openapi.json", "--checks", "all",
                              "--exclude-checks", "use_after_free", "--seed", "1", "--max-examples", "10",
                              "--generation-database", "none", "--no-shrink", "--no-color"],
-                            capture_output=True, text=True, timeout=600)
+                            capture_output=True, text=True, timeout=600, cwd=tmp_path)  # its cache goes there
     report = result.stdout + result.stderr
     assert result.returncode == 0, report[-12000:]
     summary = re.search(r"API Operations:\s+Selected: (\d+)/(\d+)\s+Tested: (\d+)", report)
