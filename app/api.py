@@ -4,45 +4,49 @@ ground counterfactual instructions on an episode's semantic map at any step.
 It posts the same runner commands as the page (`app.runner`), so both share one behaviour. Handlers are plain
 `def`s: FastAPI runs them on its thread pool, where waiting for the runner blocks nobody else. Every error
 answers with a JSON body {"detail": "<what was wrong>"}: 404 for unknown episodes, 409 when the request does not
-fit the state (no model loaded, no map yet), 422 for bad input (unknown words, env_id < 0, missing checkpoint),
-503 when the simulator does not answer in time.
+fit the state (no model loaded, no map yet, the queue full), 422 for bad input (unknown words, env_id < 0, NaN,
+missing checkpoint; `app.schema` says what every input may be), 503 when the simulator does not answer in time;
+401, 403 and 421 from the access checks (`app.access`). The OpenAPI schema lists each route's.
 """
 
 from __future__ import annotations
 
 import logging
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Path, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.colors import png_bytes, upscale
-from app.commands import MAX_ENV_ID, Ground, Grounding, NotFound, RunnerError, StartEpisode
+from app.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
 from app.layers import LAYERS, map_layers
 from app.recording import Episode, EpisodeResult
 from app.runner import Runner
+from app.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
 from gsmn.model.heads import positive_probability
 
 log = logging.getLogger("gsmn.dashboard")
 COMMAND_TIMEOUT = 60.0
 
 
+MAX_STEP = 100_000  # more than any horizon
+EpisodeId = Annotated[int, path_id("episode")]
+Step = Annotated[int, Path(ge=0, le=MAX_STEP, description="the step, from 0")]
+
+
 # -- request and response models -----------------------------------------------------------------------------
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class EpisodeRequest(_Strict):
-    env_id: int = Field(..., ge=0, le=MAX_ENV_ID, description="environment id (id % 100: 0-69 train, 70-84 test, "
-                        "85-99 dev)", examples=[70])
-    instruction: str | None = Field(None, max_length=500, description="free text, e.g. 'go to the left side of the "
-                                    "barrel'; omitted: the environment's own instruction")
-    checkpoint: str | None = Field(None, description="a checkpoint name under checkpoints/ or a folder; omitted: "
-                                   "the default checkpoint")
+class EpisodeRequest(Strict):
+    env_id: EnvId = Field(..., description=f"environment id, 0 to {MAX_ENV_ID} (id % 100: 0-69 train, 70-84 test, "
+                          "85-99 dev)", examples=[70])
+    instruction: Text | None = Field(None, max_length=500, description="free text, e.g. 'go to the left side of "
+                                     "the barrel'; omitted: the environment's own instruction")
+    checkpoint: Text | None = Field(None, max_length=1000, description="a checkpoint name under checkpoints/ or a "
+                                    "folder; omitted: the default checkpoint")
     policy: Literal["model", "mirror", "expert"] = Field(
         "model", description="who flies: the model; the model as a test-time mirror ensemble (it also flies the "
         "mirror image of each step and the two actions are averaged; the maps are the unmirrored copy's); or the "
@@ -115,10 +119,11 @@ class StepsResponse(BaseModel):
     steps: list[StepModel]
 
 
-class GroundRequest(_Strict):
-    episode_id: int = Field(..., ge=1)
-    instruction: str = Field(..., min_length=1, max_length=500, examples=["go to the right side of the barrel"])
-    step: int | None = Field(None, ge=0, description="the step whose semantic map to use; omitted: the latest")
+class GroundRequest(Strict):
+    episode_id: Id
+    instruction: Text = Field(..., min_length=1, max_length=500, examples=["go to the right side of the barrel"])
+    step: int | None = Field(None, ge=0, le=MAX_STEP, description="the step whose semantic map to use; omitted: "
+                             "the latest")
 
 
 class GroundResponse(BaseModel):
@@ -179,7 +184,16 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
                               "episodes step by step, and ground counterfactual instructions on a semantic map "
                               "already built. Evaluate checkpoints, browse failures with their attribution, and "
                               "fine-tune with DAggerFM in separate processes. The browser view runs on the viser "
-                              "port.")
+                              "port.", responses=responses(*ACCESS))
+
+    @app.exception_handler(StarletteHTTPException)
+    def http_error(request: Request, e: StarletteHTTPException) -> JSONResponse:
+        """Starlette's own 404 and 405; a 405's Allow names every method the path takes (Starlette names only
+        those of the first route that matches it)."""
+        headers = dict(e.headers or {})
+        if e.status_code == 405:
+            headers["Allow"] = ", ".join(allowed_methods(app, request.url.path))
+        return JSONResponse({"detail": str(e.detail)}, status_code=e.status_code, headers=headers)
 
     @app.exception_handler(RunnerError)
     def runner_error(request: Request, e: RunnerError) -> JSONResponse:
@@ -195,8 +209,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         for err in e.errors():
             where = ".".join(str(x) for x in err.get("loc", ()) if x not in ("body", "path", "query"))
             parts.append(f"{where}: {err.get('msg')}" if where else str(err.get("msg")))
-        return JSONResponse({"detail": "; ".join(parts) or "invalid request", "errors": _plain(e.errors())},
-                            status_code=422)
+        return JSONResponse({"detail": safe_text("; ".join(parts) or "invalid request"),
+                             "errors": plain_errors(e.errors())}, status_code=422)
 
     if jobs is not None:
         from app.jobs_api import add_job_routes
@@ -220,7 +234,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         return [CheckpointModel(**c.__dict__) for c in runner.checkpoint_list()]
 
     @app.post("/api/episodes", response_model=EpisodeCreated, status_code=201,
-              summary="Queue an episode; it flies after those before it")
+              responses=responses(400, 409, 422, 503), summary="Queue an episode; it flies after those before it")
     def create_episode(request: EpisodeRequest) -> EpisodeCreated:
         e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint),
                         COMMAND_TIMEOUT)
@@ -230,13 +244,21 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
     def list_episodes() -> list[EpisodeSummary]:
         return [summary(e) for e in runner.episodes.all()]
 
-    @app.get("/api/episodes/{episode_id}", response_model=EpisodeSummary, summary="Status, steps and result")
-    def get_episode(episode_id: int) -> EpisodeSummary:
+    @app.get("/api/episodes/{episode_id}", response_model=EpisodeSummary, responses=responses(404, 422),
+             summary="Status, steps and result")
+    def get_episode(episode_id: EpisodeId) -> EpisodeSummary:
         return summary(episode_or_404(episode_id))
 
+    @app.delete("/api/episodes/{episode_id}", response_model=EpisodeSummary,
+                responses=responses(404, 409, 422, 503), summary="Cancel an episode: drop it from the queue, or end "
+                "it if it is flying")
+    def cancel_episode(episode_id: EpisodeId) -> EpisodeSummary:
+        return summary(runner.call(CancelEpisode(episode_id), COMMAND_TIMEOUT))
+
     @app.get("/api/episodes/{episode_id}/steps", response_model=StepsResponse,
+             responses=responses(404, 422),
              summary="Per-step poses and actions (all recorded steps; complete once finished)")
-    def get_steps(episode_id: int) -> StepsResponse:
+    def get_steps(episode_id: EpisodeId) -> StepsResponse:
         e = episode_or_404(episode_id)
         steps = [StepModel(step=s.step, time=s.time, x=s.position[0], y=s.position[1], z=s.position[2], yaw=s.yaw,
                            v=s.v, omega=s.omega, stop=s.stop,
@@ -250,15 +272,16 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         return e.steps[step]
 
     @app.get("/api/episodes/{episode_id}/steps/{step}/camera.jpg", response_class=Response,
-             responses={200: {"content": {"image/jpeg": {}}}}, summary="The camera image at a step")
-    def get_camera(episode_id: int, step: int) -> Response:
+             responses={200: {"content": {"image/jpeg": {}}}, **responses(404, 422)},
+             summary="The camera image at a step")
+    def get_camera(episode_id: EpisodeId, step: Step) -> Response:
         return Response(step_of(episode_or_404(episode_id), step).camera_jpeg, media_type="image/jpeg")
 
     @app.get("/api/episodes/{episode_id}/steps/{step}/maps/{layer}.png", response_class=Response,
-             responses={200: {"content": {"image/png": {}}}},
+             responses={200: {"content": {"image/png": {}}}, **responses(404, 422)},
              summary="A map layer at a step as PNG (semantic, relevance, goal, goal_robot, or another map of the "
                      "model's output record by its name, e.g. coverage_w), 4x nearest-neighbour")
-    def get_map(episode_id: int, step: int, layer: str) -> Response:
+    def get_map(episode_id: EpisodeId, step: Step, layer: Literal[LAYERS]) -> Response:
         e = episode_or_404(episode_id)
         if layer not in LAYERS:
             raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS)}")
@@ -272,7 +295,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")
 
-    @app.post("/api/ground", response_model=GroundResponse,
+    @app.post("/api/ground", response_model=GroundResponse, responses=responses(400, 404, 409, 422, 503),
               summary="Ground another instruction on an episode's semantic map at a step, without flying")
     def ground(request: GroundRequest) -> GroundResponse:
         episode = episode_or_404(request.episode_id)
@@ -290,14 +313,11 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
     return app
 
 
-def _plain(errors: list) -> list:
-    """Validation errors made JSON-safe (pydantic may put exceptions in 'ctx')."""
-    out = []
-    for err in errors:
-        err = dict(err)
-        if "ctx" in err:
-            err["ctx"] = {k: str(v) for k, v in err["ctx"].items()}
-        if not isinstance(err.get("input"), (str, int, float, bool, type(None))):
-            err.pop("input", None)
-        out.append(err)
-    return out
+def allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """The methods of every route whose path matches `path`."""
+    methods: set[str] = set()
+    for route in app.routes:
+        regex, route_methods = getattr(route, "path_regex", None), getattr(route, "methods", None)
+        if regex is not None and route_methods and regex.match(path):
+            methods |= set(route_methods)
+    return sorted(methods)

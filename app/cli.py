@@ -15,7 +15,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", default=None, help="GSMN checkpoint folder to fly (default: checkpoints/gsmn "
                    "when it exists; without one the expert flies and the page says so)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind both servers (default: loopback only; "
-                   "neither has authentication)")
+                   "beyond it every request needs the token printed at start-up)")
+    p.add_argument("--token", nargs="?", const="", default=None, help="require this token (alone: a fresh one, "
+                   "printed) of every API request and the page's WebSocket, also on loopback (default: $GSMN_TOKEN; "
+                   "required and made up when --host is not loopback)")
     p.add_argument("--port", type=int, default=8080, help="browser view port (the next free one is used if taken)")
     p.add_argument("--api-port", type=int, default=8000, help="HTTP API port (the next free one is used if taken)")
     p.add_argument("--env-id", type=int, default=70, help="environment shown first (default: the first test one)")
@@ -36,7 +39,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
                               api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
-                              max_runs=args.max_runs, max_evaluations=args.max_evaluations)
+                              max_runs=args.max_runs, max_evaluations=args.max_evaluations, token=args.token)
     except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
         print(f"gsmn serve: error: {e}", file=sys.stderr)
         return 2
@@ -44,6 +47,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
     moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
     print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
+    for note in urls.notes:  # off loopback: a warning and the real addresses; the token
+        print(note, flush=True)
     print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
     print(f"data: {dashboard.jobs.describe()}", flush=True)
     try:

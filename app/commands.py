@@ -19,6 +19,7 @@ from gsmn.world.spec import WorldSpec
 
 POLICIES = ("model", "mirror", "expert")  # "mirror": the model as a test-time mirror ensemble
 MAX_ENV_ID = 2**31 - 1
+MAX_QUEUED = 8  # episodes waiting to fly behind the live one; more are refused (each flies for up to minutes)
 
 
 # -- errors the API turns into 4xx answers --------------------------------------------------------------------
@@ -34,6 +35,14 @@ class NotFound(RunnerError):
 
 class Conflict(RunnerError):
     status = 409
+
+
+class Forbidden(RunnerError):
+    status = 403
+
+
+class TooLarge(RunnerError):
+    status = 413
 
 
 # -- commands -------------------------------------------------------------------------------------------------
@@ -75,6 +84,11 @@ class StepOnce(Command):
 @dataclass
 class Cancel(Command):
     pass
+
+
+@dataclass
+class CancelEpisode(Command):
+    episode_id: int  # a queued episode is dropped from the queue, the live one ends
 
 
 @dataclass

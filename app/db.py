@@ -5,10 +5,15 @@ Rows are read back as typed records (`Evaluation`, `EpisodeRow`, `Run`); JSON co
 caller sees raw SQL rows. One connection is shared by the server's threads behind a lock: every write is a single
 statement, so a server killed at any moment leaves either the old row or the new one. Status values:
 queued, running, finished, failed, cancelled.
+
+A file that is not a whole record (empty, not SQLite, or failing SQLite's quick check) is refused when opened,
+naming it, rather than started afresh over the job folders beside it; any SQLite error later (a full disk, a
+damaged page) is a `RecordError` that names the file, and the API answers it with 503.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import threading
@@ -16,6 +21,8 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
+
+from app.commands import RunnerError
 
 QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
 ACTIVE = (QUEUED, RUNNING)
@@ -90,6 +97,12 @@ CREATE TABLE IF NOT EXISTS runs (
 );
 CREATE INDEX IF NOT EXISTS episodes_by_evaluation ON episodes (evaluation_id, position);
 """
+
+
+class RecordError(RunnerError):
+    """The record cannot be read or written (a full disk, a damaged file); the message names the file."""
+
+    status = 503
 
 
 @dataclass(frozen=True)
@@ -194,11 +207,23 @@ class Database:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
-        self._db.row_factory = sqlite3.Row
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        keep = ("Nothing was changed: move it away (a new record then starts; the job folders beside it are kept) "
+                "or give another --data-dir.")
+        if self.path.is_file() and self.path.stat().st_size == 0:
+            raise RecordError(f"{self.path} is empty (0 bytes), not a dashboard record: it was cut short or "
+                              f"overwritten. {keep}")
+        try:
+            self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
+            self._db.row_factory = sqlite3.Row
+            check = self._db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                self._db.close()
+                raise RecordError(f"{self.path} is damaged (SQLite's quick check: {check}). {keep}")
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        except sqlite3.Error as e:
+            raise RecordError(f"{self.path} is not a readable dashboard record ({e}). {keep}") from e
         if version > SCHEMA_VERSION:
             raise RuntimeError(f"{self.path} was written by a newer version (schema {version}); use another "
                                "--data-dir")
@@ -215,12 +240,19 @@ class Database:
             self._db.close()
 
     def _execute(self, sql: str, params: tuple | dict = ()) -> sqlite3.Cursor:
-        with self._lock:
+        with self._lock, self._errors("write"):
             return self._db.execute(sql, params)
 
     def _all(self, sql: str, params: tuple | dict = ()) -> list[sqlite3.Row]:
-        with self._lock:
+        with self._lock, self._errors("read"):
             return self._db.execute(sql, params).fetchall()
+
+    @contextlib.contextmanager
+    def _errors(self, what: str):
+        try:
+            yield
+        except sqlite3.Error as e:
+            raise RecordError(f"cannot {what} the record {self.path}: {e}") from e
 
     def _insert(self, table: str, values: dict[str, Any], replace: bool = False) -> int:
         names = list(values)

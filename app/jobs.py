@@ -28,16 +28,19 @@ summaries and comparisons `app.results`'.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import os
 import shlex
+import stat
 import sys
 import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from app.commands import NotFound, RunnerError
+from app.commands import Forbidden, NotFound, RunnerError, TooLarge
 from app.db import FINISHED, Database, Evaluation, Run
 from app.results import EpisodeRecorder, compare, summarize_rows
 from app.run_settings import RunSettings, expert_store_key, run_config
@@ -47,6 +50,8 @@ from gsmn.config import RunConfig
 log = logging.getLogger("gsmn.dashboard")
 
 MAX_ENVIRONMENTS = 5000
+CORES = os.cpu_count() or 1  # a job's worker processes (and a run's torch threads), at most
+MAX_IMPORT_BYTES = 256 * 2**20  # a `gsmn eval --json` file of 750 episodes with trajectories is a few MB
 
 
 # -- the manager --------------------------------------------------------------------------------------------------
@@ -126,8 +131,8 @@ class JobManager:
             raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids, got {len(ids)}")
         if len(set(ids)) != len(ids):
             raise RunnerError("environment ids repeat")
-        if not 1 <= workers <= 16:
-            raise RunnerError(f"workers must be between 1 and 16, got {workers}")
+        if not 1 <= workers <= CORES:
+            raise RunnerError(f"workers must be between 1 and {CORES} (this machine's cores), got {workers}")
         if mirror_ensemble:
             label += ", mirror ensemble"
         with self.supervisor.lock:
@@ -135,8 +140,7 @@ class JobManager:
             eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,
                                          label=label, baseline_id=baseline_id, run_id=run_id,
                                          mirror_ensemble=mirror_ensemble)
-            folder = self.root / "evaluations" / f"{eid:04d}"
-            folder.mkdir(parents=True, exist_ok=True)
+            folder = new_job_folder(self.root / "evaluations", eid)
             self.db.update_evaluation(eid, folder=str(folder))
             (folder / "config.json").write_text(self.config.to_json() + "\n")
             command = [self.python, "-m", "gsmn.cli", "eval", "--system", system,
@@ -167,14 +171,17 @@ class JobManager:
 
     def import_evaluation(self, path: str | Path, record_dir: str | Path | None = None) -> Evaluation:
         """Record a `gsmn eval --json` file as a finished evaluation (attributed when `record_dir` holds the
-        episodes' traces, i.e. it was run with --record)."""
-        path = Path(path)
+        episodes' traces, i.e. it was run with --record). Both must be inside the data folder (relative paths are
+        taken from it); the file must be a regular one of at most MAX_IMPORT_BYTES."""
+        path = self.inside_data(path, "path")
+        record_dir = self.inside_data(record_dir, "record_dir") if record_dir is not None else None
+        data = read_regular_file(path, MAX_IMPORT_BYTES)
+        if record_dir is not None and not record_dir.is_dir():
+            raise NotFound(f"record_dir {record_dir} is not a folder")
         try:
-            results = json.loads(path.read_text())
+            results = json.loads(data)
             episodes, system = results["episodes"], results["system"]
             config = RunConfig.from_dict(results["config"])
-        except OSError as e:
-            raise RunnerError(f"cannot read {path}: {e.strerror or e}") from e
         except (ValueError, KeyError, TypeError) as e:
             raise RunnerError(f"{path} is not a `gsmn eval --json` file: {type(e).__name__}: {e}") from e
         ids = [int(ep["env_id"]) for ep in episodes]
@@ -191,6 +198,18 @@ class JobManager:
                                   finished=time.time())
         self._notify("evaluation", eid)
         return self.db.evaluation(eid)
+
+    def inside_data(self, path: str | Path, what: str) -> Path:
+        """`path` (relative: to the data folder) resolved, if it lies in the data folder; else Forbidden, without
+        saying whether it exists."""
+        try:
+            resolved = (self.root / path).resolve()
+        except (OSError, RuntimeError) as e:
+            raise RunnerError(f"{what} {path} cannot be resolved: {e}") from e
+        if not resolved.is_relative_to(self.root):
+            raise Forbidden(f"{what} must be inside the data folder {self.root} (write `gsmn eval --json` and "
+                            "--record there)")
+        return resolved
 
     def compare(self, before_id: int, after_id: int) -> dict:
         """The episodes two evaluations share, side by side (before/after a fine-tuning run)."""
@@ -217,14 +236,18 @@ class JobManager:
             env_ids = sorted({int(e) for e in env_ids})
             if not env_ids or env_ids[0] < 0 or len(env_ids) > MAX_ENVIRONMENTS:
                 raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids")
-        if settings.expert_data is not None and not Path(settings.expert_data).is_dir():
-            raise RunnerError(f"expert_data {settings.expert_data} is not an episode store folder")
+        for name in ("workers", "threads"):
+            if getattr(settings, name) > CORES:
+                raise RunnerError(f"{name} must be at most {CORES} (this machine's cores), got "
+                                  f"{getattr(settings, name)}")
+        if settings.expert_data is not None and (not settings.expert_data.strip()
+                                                 or not Path(settings.expert_data).is_dir()):
+            raise RunnerError(f"expert_data {settings.expert_data!r} is not an episode store folder")
         with self.supervisor.lock:
             self.supervisor.check_limit("run", self.max_runs, "--max-runs")
             rid = self.db.add_run(settings=settings.to_dict(), env_ids=env_ids, init_checkpoint=str(init),
                                   folder="", source_evaluation_id=evaluation_id)
-            folder = self.root / "runs" / f"{rid:04d}"
-            folder.mkdir(parents=True, exist_ok=True)
+            folder = new_job_folder(self.root / "runs", rid)
             self.db.update_run(rid, folder=str(folder))
             (folder / "config.json").write_text(config.to_json() + "\n")
             # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
@@ -380,6 +403,46 @@ def run_progress(folder: Path, row: Run) -> tuple[dict, list[dict]]:
     if p.log:
         out["loss"] = p.log[-1].get("train", {}).get("loss")
     return out, p.log
+
+
+def new_job_folder(parent: Path, job_id: int) -> Path:
+    """A folder for a new job, never one that holds files already: a record started afresh beside old job folders
+    numbers its jobs from 1 again, and must not write over what they saved."""
+    folder, n = parent / f"{job_id:04d}", 0
+    while folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        n += 1
+        folder = parent / f"{job_id:04d}-{n}"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def read_regular_file(path: Path, limit: int) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes. Opened without blocking and checked before reading, so
+    a FIFO, a device (/dev/zero) or a huge file never holds the request's thread or the server's memory."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as e:
+        if e.errno in (errno.ENOENT, errno.ENOTDIR):
+            raise NotFound(f"no file {path}") from e
+        raise RunnerError(f"cannot read {path}: {e.strerror or e}") from e
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise RunnerError(f"{path} is not a regular file")
+        if info.st_size > limit:
+            raise TooLarge(f"{path} is {info.st_size / 2**20:.0f} MiB, more than the {limit / 2**20:.0f} MiB an "
+                           "import takes")
+        chunks, size = [], 0
+        while chunk := os.read(fd, 1 << 20):
+            size += len(chunk)
+            if size > limit:  # grew while being read
+                raise TooLarge(f"{path} is more than the {limit / 2**20:.0f} MiB an import takes")
+            chunks.append(chunk)
+        return b"".join(chunks)
+    except OSError as e:
+        raise RunnerError(f"cannot read {path}: {e.strerror or e}") from e
+    finally:
+        os.close(fd)
 
 
 def _read_json(path: Path) -> dict | None:

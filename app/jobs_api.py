@@ -1,53 +1,57 @@
 """HTTP routes for evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
 (`app.jobs`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
-unknown ids, 409 when a limit is reached or there is nothing to cancel or resume, 422 for bad input."""
+unknown ids, 409 when a limit is reached or there is nothing to cancel or resume, 413 for a file too large to
+import, 422 for bad input, 503 when the record cannot be written (`app.schema` says what every input may be)."""
 
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
-from fastapi import FastAPI
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import FastAPI, Query
+from pydantic import BaseModel, Field
 
 from app.commands import NotFound, RunnerError, StartEpisode
 from app.db import EpisodeRow, Evaluation, Run
-from app.jobs import JobManager
-from app.run_settings import run_settings
+from app.jobs import CORES, MAX_IMPORT_BYTES, JobManager
+from app.run_settings import MAX_ROLLOUTS, run_settings
 from app.runner import Runner
+from app.schema import EnvId, Id, Strict, Text, path_id, responses
 
 COMMAND_TIMEOUT = 60.0
 SYSTEMS = Literal["gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem", "oracle"]
 STATUS = Literal["queued", "running", "finished", "failed", "cancelled"]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+EvaluationId = Annotated[int, path_id("evaluation")]
+RunId = Annotated[int, path_id("run")]
 
 
-class EvaluationRequest(_Strict):
-    checkpoint: str | None = Field(None, description="checkpoint name (under checkpoints/, or run-N for a "
-                                   "fine-tuning run) or folder; omitted: the server's default")
+class EvaluationRequest(Strict):
+    checkpoint: Text | None = Field(None, max_length=1000, description="checkpoint name (under checkpoints/, or "
+                                    "run-N for a fine-tuning run) or folder; omitted: the server's default")
     system: SYSTEMS | None = Field(None, description="omitted: the checkpoint's kind; 'oracle' flies the expert")
     split: Literal["train", "test", "dev"] | None = Field(None, description="evaluate on this split ...")
     episodes: int | None = Field(None, ge=1, le=5000, description="... its first this many environments")
-    env_ids: list[int] | None = Field(None, min_length=1, max_length=5000, description="or these environment ids")
-    baseline_id: int | None = Field(None, ge=1, description="rerun the episodes of this evaluation (before/after); "
+    env_ids: list[EnvId] | None = Field(None, min_length=1, max_length=5000, description="or these environment ids")
+    baseline_id: Id | None = Field(None, description="rerun the episodes of this evaluation (before/after); "
                                     "also the default environments")
-    run_id: int | None = Field(None, ge=1, description="evaluate this finished fine-tuning run's checkpoint")
-    workers: int = Field(1, ge=1, le=16, description="worker processes (one core each; 1 leaves the live view "
-                         "its share)")
+    run_id: Id | None = Field(None, description="evaluate this finished fine-tuning run's checkpoint")
+    workers: int = Field(1, ge=1, le=CORES, description="worker processes, at most this machine's cores (one core "
+                         "each; 1 leaves the live view its share)")
     mirror_ensemble: bool = Field(False, description="fly the model as a test-time mirror ensemble (it also flies "
                                   "the mirror image of each step and the two actions are averaged; not in the paper)")
 
 
-class ImportRequest(_Strict):
-    path: str = Field(..., description="a `gsmn eval --json` file")
-    record_dir: str | None = Field(None, description="its `--record` folder, for failure attribution")
+class ImportRequest(Strict):
+    path: Text = Field(..., min_length=1, max_length=1000, description="a `gsmn eval --json` file inside the data "
+                       f"folder (relative: to it), a regular file of at most {MAX_IMPORT_BYTES // 2**20} MiB")
+    record_dir: Text | None = Field(None, min_length=1, max_length=1000, description="its `--record` folder, for "
+                                    "failure attribution, inside the data folder too")
 
 
-class ReplayRequest(_Strict):
-    env_id: int = Field(..., ge=0)
+class ReplayRequest(Strict):
+    env_id: EnvId
 
 
 class EvaluationModel(BaseModel):
@@ -104,25 +108,31 @@ class Replayed(BaseModel):
     checkpoint: str | None
 
 
-class RunRequest(_Strict):
+class RunRequest(Strict):
     preset: Literal["tiny", "small", "paper"] = Field("tiny", description="tiny: a minute or two on a 2-core "
-                                                      "machine; small: tens of minutes; paper: the original's")
-    iterations: int | None = Field(None, ge=1, le=10000)
-    rollouts_per_iteration: int | None = Field(None, ge=1, le=10000, description="N_D")
+                                                      "machine; small: tens of minutes; paper: the original's "
+                                                      f"settings, whose 150 x 24 rollouts are more than the "
+                                                      f"{MAX_ROLLOUTS} the dashboard launches: give fewer iterations")
+    iterations: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description=f"iterations x N_D at most "
+                                   f"{MAX_ROLLOUTS}")
+    rollouts_per_iteration: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description="N_D")
     dataset_size: int | None = Field(None, ge=1, le=100000, description="M")
     beta0: float | None = Field(None, ge=0, le=1)
     learning_rate: float | None = Field(None, gt=0, le=1)
     horizon: int | None = Field(None, ge=1, le=1000, description="steps per rollout")
     batch_size: int | None = Field(None, ge=1, le=64)
-    workers: int | None = Field(None, ge=1, le=16)
-    threads: int | None = Field(None, ge=1, le=64)
+    workers: int | None = Field(None, ge=1, le=CORES, description="rollout worker processes, at most this machine's "
+                                "cores")
+    threads: int | None = Field(None, ge=1, le=CORES, description="torch threads of the training, at most this "
+                                "machine's cores")
     mirror: float | None = Field(None, ge=0, le=1, description="share of training episodes mirrored east-west "
                                  "(left and right swapped; not in the paper); omitted: the preset's, 0")
-    expert_data: str | None = Field(None, description="an expert episode store (gsmn collect) to start the dataset "
-                                    "from; omitted: collected in the data folder")
-    checkpoint: str | None = Field(None, description="start from this checkpoint; omitted: the server's default")
-    env_ids: list[int] | None = Field(None, min_length=1, max_length=5000, description="roll out in these")
-    evaluation_id: int | None = Field(None, ge=1, description="roll out in this evaluation's failures (when no "
+    expert_data: Text | None = Field(None, max_length=1000, description="an expert episode store (gsmn collect) "
+                                     "to start the dataset from; omitted: collected in the data folder")
+    checkpoint: Text | None = Field(None, max_length=1000, description="start from this checkpoint; omitted: the "
+                                    "server's default")
+    env_ids: list[EnvId] | None = Field(None, min_length=1, max_length=5000, description="roll out in these")
+    evaluation_id: Id | None = Field(None, description="roll out in this evaluation's failures (when no "
                                       "env_ids); neither: the train split")
 
 
@@ -178,6 +188,7 @@ def run_model(r: Run) -> RunModel:
 def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
     # -- evaluations ---------------------------------------------------------------------------------------------
     @app.post("/api/evaluations", response_model=EvaluationModel, status_code=201,
+              responses=responses(400, 404, 409, 422, 503),
               summary="Evaluate a checkpoint on a split or environments, in a separate process")
     def create_evaluation(request: EvaluationRequest) -> EvaluationModel:
         checkpoint = request.checkpoint
@@ -190,33 +201,40 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
                                   request.baseline_id, request.run_id, request.workers, request.mirror_ensemble)
         return evaluation_model(jobs, e)
 
-    @app.get("/api/evaluations", response_model=list[EvaluationModel], summary="Every evaluation recorded")
+    @app.get("/api/evaluations", response_model=list[EvaluationModel], responses=responses(503),
+             summary="Every evaluation recorded")
     def list_evaluations() -> list[EvaluationModel]:
         return [evaluation_model(jobs, e) for e in jobs.db.evaluations()]
 
     @app.post("/api/evaluations/import", response_model=EvaluationModel, status_code=201,
+              responses=responses(400, 403, 404, 413, 422, 503),
               summary="Record the results of `gsmn eval --json` (and its --record folder) as an evaluation")
     def import_evaluation(request: ImportRequest) -> EvaluationModel:
         return evaluation_model(jobs, jobs.import_evaluation(request.path, request.record_dir))
 
-    @app.get("/api/evaluations/{evaluation_id}", response_model=EvaluationModel,
+    @app.get("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
+             responses=responses(404, 422, 503),
              summary="Status, progress, summary so far and attribution counts")
-    def get_evaluation(evaluation_id: int) -> EvaluationModel:
+    def get_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
         return evaluation_model(jobs, jobs.evaluation(evaluation_id))
 
-    @app.delete("/api/evaluations/{evaluation_id}", response_model=EvaluationModel,
+    @app.delete("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
+                responses=responses(404, 409, 422, 503),
                 summary="Cancel a running evaluation (its process group gets SIGTERM, then SIGKILL)")
-    def cancel_evaluation(evaluation_id: int) -> EvaluationModel:
+    def cancel_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
         return evaluation_model(jobs, jobs.cancel_evaluation(evaluation_id))
 
-    @app.post("/api/evaluations/{evaluation_id}/resume", response_model=EvaluationModel,
+    @app.post("/api/evaluations/{evaluation_id:int}/resume", response_model=EvaluationModel,
+              responses=responses(404, 409, 422, 503),
               summary="Fly the rest of a cancelled or failed evaluation, keeping the episodes it had finished")
-    def resume_evaluation(evaluation_id: int) -> EvaluationModel:
+    def resume_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
         return evaluation_model(jobs, jobs.resume_evaluation(evaluation_id))
 
-    @app.get("/api/evaluations/{evaluation_id}/episodes", response_model=list[EpisodeModel],
+    @app.get("/api/evaluations/{evaluation_id:int}/episodes", response_model=list[EpisodeModel],
+             responses=responses(404, 422, 503),
              summary="Its episodes in the order flown, with attribution; filters as in the failure browser")
-    def list_evaluation_episodes(evaluation_id: int, failed_only: bool = False, landmark: str | None = None,
+    def list_evaluation_episodes(evaluation_id: EvaluationId, failed_only: bool = False,
+                                 landmark: Annotated[Text | None, Query(max_length=200)] = None,
                                  side: Literal["left", "right", "front", "back"] | None = None,
                                  ambiguous: bool | None = None,
                                  stage: Literal["perception", "grounding", "goal", "control"] | None = None,
@@ -225,9 +243,10 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
         return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
                                                              stage, entered_region)]
 
-    @app.post("/api/evaluations/{evaluation_id}/replay", response_model=Replayed, status_code=201,
+    @app.post("/api/evaluations/{evaluation_id:int}/replay", response_model=Replayed, status_code=201,
+              responses=responses(400, 404, 409, 422, 503),
               summary="Fly an episode of the evaluation again in the live view, with its maps")
-    def replay(evaluation_id: int, request: ReplayRequest) -> Replayed:
+    def replay(evaluation_id: EvaluationId, request: ReplayRequest) -> Replayed:
         e = jobs.evaluation(evaluation_id)
         if jobs.db.episode(evaluation_id, request.env_id) is None:
             raise NotFound(f"evaluation {evaluation_id} has no episode in environment {request.env_id}")
@@ -235,36 +254,37 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
         episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint), COMMAND_TIMEOUT)
         return Replayed(episode_id=episode.id, env_id=request.env_id, policy=policy, checkpoint=checkpoint)
 
-    @app.get("/api/evaluations/{before_id}/compare/{after_id}",
+    @app.get("/api/evaluations/{before_id:int}/compare/{after_id:int}", responses=responses(404, 422, 503),
              summary="Before/after: the episodes two evaluations share, side by side")
-    def compare(before_id: int, after_id: int) -> dict:
+    def compare(before_id: EvaluationId, after_id: EvaluationId) -> dict:
         return clean(jobs.compare(before_id, after_id))
 
     # -- runs ----------------------------------------------------------------------------------------------------
-    @app.post("/api/runs", response_model=RunModel, status_code=201,
+    @app.post("/api/runs", response_model=RunModel, status_code=201, responses=responses(400, 404, 409, 422, 503),
               summary="Launch DAggerFM fine-tuning from a checkpoint, in a separate process")
     def create_run(request: RunRequest) -> RunModel:
         fields = request.model_dump(exclude={"preset", "checkpoint", "env_ids", "evaluation_id"})
         settings = run_settings(request.preset, **fields)
         return run_model(jobs.start_run(settings, request.checkpoint, request.env_ids, request.evaluation_id))
 
-    @app.get("/api/runs", response_model=list[RunModel], summary="Every fine-tuning run recorded")
+    @app.get("/api/runs", response_model=list[RunModel], responses=responses(503),
+             summary="Every fine-tuning run recorded")
     def list_runs() -> list[RunModel]:
         return [run_model(r) for r in jobs.db.runs()]
 
-    @app.get("/api/runs/{run_id}", response_model=RunModel,
+    @app.get("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 422, 503),
              summary="Status, progress, metrics so far, and the checkpoint when done")
-    def get_run(run_id: int) -> RunModel:
+    def get_run(run_id: RunId) -> RunModel:
         return run_model(jobs.run(run_id))
 
-    @app.delete("/api/runs/{run_id}", response_model=RunModel,
+    @app.delete("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 409, 422, 503),
                 summary="Cancel a run (SIGTERM, then SIGKILL, to its process group); its folder stays")
-    def cancel_run(run_id: int) -> RunModel:
+    def cancel_run(run_id: RunId) -> RunModel:
         return run_model(jobs.cancel_run(run_id))
 
-    @app.post("/api/runs/{run_id}/resume", response_model=RunModel,
+    @app.post("/api/runs/{run_id:int}/resume", response_model=RunModel, responses=responses(404, 409, 422, 503),
               summary="Continue a cancelled or failed run from the iterations its folder saved")
-    def resume_run(run_id: int) -> RunModel:
+    def resume_run(run_id: RunId) -> RunModel:
         return run_model(jobs.resume_run(run_id))
 
 

@@ -32,6 +32,8 @@ class RunSettings:
         return asdict(self)
 
 
+MAX_ROLLOUTS = 2000  # iterations x N_D of a run launched from the dashboard
+
 RUN_PRESETS = {
     # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4
     "tiny": RunSettings("tiny", iterations=2, rollouts_per_iteration=2, dataset_size=4, beta0=0.5,
@@ -54,7 +56,13 @@ def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
     unknown = set(overrides) - names
     if unknown:
         raise RunnerError(f"unknown run setting(s): {', '.join(sorted(unknown))}")
-    return replace(RUN_PRESETS[preset_name], **{k: v for k, v in overrides.items() if v is not None})
+    s = replace(RUN_PRESETS[preset_name], **{k: v for k, v in overrides.items() if v is not None})
+    # what DaggerConfig checks (counts, N_D <= M, beta0, ...) it checks in run_config; this is the job's size
+    if s.iterations * s.rollouts_per_iteration > MAX_ROLLOUTS:
+        raise RunnerError(f"{s.iterations} iterations of {s.rollouts_per_iteration} rollouts are more than the "
+                          f"dashboard launches (at most {MAX_ROLLOUTS} rollouts in all; the paper's 150 x 24 take "
+                          "days on a few cores): run `gsmn train dagger` from a shell for that")
+    return s
 
 
 def run_config(config: RunConfig, s: RunSettings) -> RunConfig:

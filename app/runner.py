@@ -30,8 +30,10 @@ import torch
 from app.colors import jpeg_bytes
 from app.commands import (
     MAX_ENV_ID,
+    MAX_QUEUED,
     POLICIES,
     Cancel,
+    CancelEpisode,
     CheckpointInfo,
     Command,
     Conflict,
@@ -123,8 +125,9 @@ class Runner:
     `checkpoints_root`; `require_checkpoint` makes a missing one an error instead of a message."""
 
     def __init__(self, config: RunConfig, checkpoint: str | Path | None = "gsmn", require_checkpoint: bool = False,
-                 checkpoints_root: str | Path = "checkpoints", max_episodes: int = 16):
+                 checkpoints_root: str | Path = "checkpoints", max_episodes: int = 16, max_queued: int = MAX_QUEUED):
         self.config = config
+        self.max_queued = max_queued
         self.checkpoints_root = Path(checkpoints_root)
         self.default_ref = str(checkpoint) if checkpoint is not None else None
         self.require_checkpoint = require_checkpoint
@@ -280,13 +283,16 @@ class Runner:
         """A bare name is a folder under checkpoints_root (unless only ./name is a checkpoint) or an extra
         checkpoint's name; else a path."""
         extra = self.extra_checkpoints() if self.extra_checkpoints else {}
-        if ref in extra and not (self.checkpoints_root / ref).is_dir():
-            return extra[ref]
-        candidate = self.checkpoints_root / ref
-        if "/" not in ref and (candidate.is_dir() or not (Path(ref) / "meta.json").is_file()):
-            return candidate
-        if (candidate / "meta.json").is_file() and not (Path(ref) / "meta.json").is_file():  # e.g. table2/no-plan
-            return candidate
+        try:
+            if ref in extra and not (self.checkpoints_root / ref).is_dir():
+                return extra[ref]
+            candidate = self.checkpoints_root / ref
+            if "/" not in ref and (candidate.is_dir() or not (Path(ref) / "meta.json").is_file()):
+                return candidate
+            if (candidate / "meta.json").is_file() and not (Path(ref) / "meta.json").is_file():  # table2/x
+                return candidate
+        except OSError as e:  # e.g. a name too long for the file system
+            raise RunnerError(f"no checkpoint at {ref}: {e.strerror or e}") from e
         return Path(ref)
 
     def _load_default(self) -> None:
@@ -310,10 +316,14 @@ class Runner:
         from gsmn.model.policy import ModelPolicy
 
         path = self._path_of(ref)
-        key = path.resolve().as_posix()
+        try:
+            key = path.resolve().as_posix()
+            found = path.is_dir()
+        except OSError as e:
+            raise RunnerError(f"no checkpoint at {path}: {e.strerror or e}") from e
         if key in self.models:
             return self.models[key]
-        if not path.is_dir():
+        if not found:
             raise RunnerError(f"no checkpoint at {path}")
         try:
             model, config, vocabulary, meta = load_checkpoint(path)
@@ -368,6 +378,9 @@ class Runner:
         if c.policy != "expert" and model is None:
             raise Conflict(f"no checkpoint to fly: {self.checkpoint_message} Choose the expert, or name a "
                            f"checkpoint.")
+        if not c.preempt and len(self._pending) >= self.max_queued:
+            raise Conflict(f"{len(self._pending)} episodes already wait to fly (at most {self.max_queued}): wait for "
+                           f"them, or cancel one (DELETE /api/episodes/{self._pending[-1].id})")
         world = world_for_env(int(c.env_id), self.config.world)
         if c.instruction is None or not c.instruction.strip():
             try:
@@ -430,6 +443,21 @@ class Runner:
         if self.live is None:
             return False
         c.future.set_result(True)
+        raise _Unwind
+
+    def _do_CancelEpisode(self, c: CancelEpisode) -> Episode:
+        """Drop a queued episode, or end the live one."""
+        episode = self.episodes.get(c.episode_id)
+        if episode is None:
+            raise NotFound(f"no episode {c.episode_id} (episodes are kept in memory, the oldest dropped)")
+        if episode in self._pending:
+            self._pending.remove(episode)
+            episode.status = CANCELLED
+            self._notify("on_episode_end", episode)
+            return episode
+        if episode is not self.live:
+            raise Conflict(f"episode {episode.id} is {episode.status}: nothing to cancel")
+        c.future.set_result(episode)
         raise _Unwind
 
     def _do_SetSpeed(self, c: SetSpeed) -> float | None:

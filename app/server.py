@@ -1,8 +1,9 @@
 """`gsmn serve`: one process with the runner, the viser page and the FastAPI API (uvicorn on a thread).
 
-Both servers bind to loopback by default: neither has authentication. viser moves to the next free port
-silently when its port is taken, so the URLs are read back from the bound sockets; the API does the same
-(and says so). Port 0 picks any free port (the tests use it).
+Both servers bind to loopback by default, and both check every request's Host, Origin and (when there is one)
+token (`app.access`): bound beyond loopback they need a token, printed at start-up in the page's URL. viser moves
+to the next free port silently when its port is taken, so the URLs are read back from the bound sockets; the API
+does the same (and says so). Port 0 picks any free port (the tests use it).
 """
 
 from __future__ import annotations
@@ -17,6 +18,17 @@ from pathlib import Path
 import uvicorn
 import viser
 
+from app.access import (
+    Access,
+    AccessMiddleware,
+    guard_viser,
+    install_viser_guard,
+    is_loopback,
+    machine_addresses,
+    resolve_token,
+    unguard_viser,
+    url,
+)
 from app.api import make_api
 from app.commands import Conflict, RunnerError, ShowEnv
 from app.jobs import JobManager
@@ -31,8 +43,8 @@ CHECKPOINTS_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
 
 
 def _url(host: str, port: int) -> str:
-    shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-    return f"http://[{shown}]:{port}" if ":" in shown else f"http://{shown}:{port}"
+    shown = {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(host, host)
+    return url(shown, port)
 
 
 def bind_socket(host: str, port: int, tries: int = 20) -> tuple[socket.socket, bool]:
@@ -59,8 +71,8 @@ def bind_socket(host: str, port: int, tries: int = 20) -> tuple[socket.socket, b
 class ApiServer:
     """uvicorn serving a FastAPI app on a daemon thread, on a socket bound beforehand."""
 
-    def __init__(self, app, host: str, port: int):
-        self.socket, self.moved = bind_socket(host, port)
+    def __init__(self, app, host: str, port: int, bound: tuple[socket.socket, bool] | None = None):
+        self.socket, self.moved = bound or bind_socket(host, port)
         self.host, self.port = host, self.socket.getsockname()[1]
         config = uvicorn.Config(app, log_level="warning", access_log=False, timeout_graceful_shutdown=2)
         self.server = uvicorn.Server(config)
@@ -89,9 +101,11 @@ class ApiServer:
 
 @dataclass
 class Urls:
-    page: str
+    page: str  # with ?token=... when there is a token
     api: str
     api_moved: bool
+    token: str | None = None
+    notes: tuple[str, ...] = ()  # what `gsmn serve` prints besides: a warning off loopback, the real addresses
 
 
 class Dashboard:
@@ -101,26 +115,42 @@ class Dashboard:
     def __init__(self, config: RunConfig, checkpoint: str | Path | None = None, host: str = "127.0.0.1",
                  port: int = 8080, api_port: int = 8000, env_id: int = 70,
                  checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1,
-                 data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1):
+                 data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1,
+                 token: str | None = None):
+        """`token`: the token requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
+        is not loopback)."""
         import torch
 
         # One thread: the runner does one small step at a time, and on a busy machine two threads spin
         # against each other (measured: an inference step went from 8 ms to 200-500 ms under load).
         torch.set_num_threads(torch_threads)
-        self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
-                             require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
-                             max_episodes=max_episodes).start()
+        # the record first: a damaged or empty one is refused (naming it) before the simulator starts
         self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
                                max_evaluations=max_evaluations)
+        try:
+            self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
+                                 require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
+                                 max_episodes=max_episodes).start()
+        except BaseException:
+            self.jobs.close()
+            raise
         self.runner.extra_checkpoints = self.jobs.checkpoints
+        token = resolve_token(token, host)
+        api_socket = bind_socket(host, api_port)  # first: the checks of both servers need both ports
+        install_viser_guard()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when not verbose
             self.viser = viser.ViserServer(host=host, port=port, verbose=False, label="GSMN dashboard")
+        self.access = Access.for_bind(host, (self.viser.get_port(), api_socket[0].getsockname()[1]), token)
+        guard_viser(self.viser.get_port(), self.access)
         self.viewer = Viewer(self.viser, self.runner, env_id)
         self.jobs_view = JobsView(self.viewer, self.jobs)
         page_url = _url(host, self.viser.get_port())
-        self.api = ApiServer(make_api(self.runner, page_url, self.jobs), host, api_port)
+        app = make_api(self.runner, page_url, self.jobs)
+        app.add_middleware(AccessMiddleware, access=self.access)
+        self.api = ApiServer(app, host, api_port, bound=api_socket)
         self.api.wait_started()
-        self.urls = Urls(page_url, self.api.url, self.api.moved)
+        self.urls = Urls(page_url + (f"/?token={token}" if token else ""), self.api.url, self.api.moved, token,
+                         _notes(host, self.viser.get_port(), self.api.port, token))
         self.runner.call(ShowEnv(env_id))
 
     def resolve_checkpoint(self, ref: str | None) -> Path:
@@ -130,16 +160,34 @@ class Dashboard:
                 raise Conflict(f"no default checkpoint: {self.runner.checkpoint_message} Name one.")
             return Path(self.runner.default_model)
         path = self.runner._path_of(ref)
-        if not (path / "meta.json").is_file():
-            raise RunnerError(f"no checkpoint at {path}")
-        return path.resolve()
+        try:
+            if not (path / "meta.json").is_file():
+                raise RunnerError(f"no checkpoint at {path}")
+            return path.resolve()
+        except OSError as e:
+            raise RunnerError(f"no checkpoint at {path}: {e.strerror or e}") from e
 
     def close(self) -> None:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
+        unguard_viser(self.viser.get_port())
         self.jobs_view.close()
         self.viewer.close()
         self.jobs.close()
         self.runner.close()
         with contextlib.redirect_stdout(io.StringIO()):
             self.viser.stop()
+
+
+def _notes(host: str, page_port: int, api_port: int, token: str | None) -> tuple[str, ...]:
+    """What `gsmn serve` says besides the URLs: off loopback, a warning and the addresses it really answers on."""
+    notes = []
+    if not is_loopback(host):
+        notes.append(f"warning: bound to {host}, beyond loopback: anyone who can reach this machine and has the "
+                     "token can fly, evaluate and fine-tune here")
+        query = f"/?token={token}" if token else ""
+        for address in machine_addresses(host):
+            notes.append(f"  page {url(address, page_port, query)}   API {url(address, api_port, '/api')}")
+    if token:
+        notes.append(f"token: {token}  (API requests: header 'Authorization: Bearer {token}')")
+    return tuple(notes)

@@ -3,7 +3,10 @@ monitor thread), cancel (SIGTERM to the group, SIGKILL `KILL_AFTER` s later), re
 a server restart, and settle a job whose process ended (finished, failed with the end of its output, or cancelled).
 
 What a job's progress means is not this module's concern: the monitor hands each watched job to `poll(handle)`,
-which reads its folder and calls `settle` once its process is gone (`app.jobs.JobManager`).
+which reads its folder and calls `settle` once its process is gone (`app.jobs.JobManager`). A job whose `poll`
+fails (a progress line the record cannot hold, a full disk) is given up at once rather than polled again: its
+process group is killed, its slot freed, and it is marked failed with the reason, as soon as the record can be
+written (the monitor retries each round, so a full disk loses nothing once space is back).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from app.commands import Conflict, RunnerError
-from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, Evaluation, Run
+from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, Evaluation, RecordError, Run
 
 log = logging.getLogger("gsmn.dashboard")
 
@@ -109,6 +112,9 @@ class Supervisor:
         self.notify = notify
         self.poll_seconds = poll_seconds
         self.handles: dict[tuple[str, int], Handle] = {}
+        # jobs given up on whose failure the record could not take yet (a full disk): written when it can
+        self.unrecorded: dict[tuple[str, int], str] = {}
+        self._told: set[tuple[str, int]] = set()
         self.lock = threading.RLock()
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._monitor, name="gsmn-jobs", daemon=True)
@@ -217,8 +223,38 @@ class Supervisor:
                 try:
                     with self.lock:
                         self.poll(h)
-                except Exception:  # noqa: BLE001 - one bad job must not stop watching the others
-                    log.error("watching %s %d failed:\n%s", h.kind, h.id, traceback.format_exc())
+                except Exception as e:  # noqa: BLE001 - one bad job must not stop watching the others
+                    log.error("watching %s %d failed; it is given up:\n%s", h.kind, h.id, traceback.format_exc())
+                    with self.lock:
+                        self.give_up(h, f"its results could not be recorded ({type(e).__name__}: {e})")
+            if self.unrecorded:
+                with self.lock:
+                    self._record_given_up()
+
+    def give_up(self, h: Handle, reason: str) -> None:
+        """A job whose progress or results cannot be recorded: end its process group, free its slot, and mark it
+        failed with the reason (as soon as the record takes it). Polling it again would only fail again."""
+        signal_group(h.pid, signal.SIGKILL)
+        self.handles.pop((h.kind, h.id), None)
+        self.unrecorded[(h.kind, h.id)] = reason
+        self._record_given_up()
+
+    def _record_given_up(self) -> None:
+        for (kind, job_id), reason in list(self.unrecorded.items()):
+            try:
+                row = self._row(kind, job_id)
+                if row is not None and row.status in ACTIVE:
+                    values = ({"status": CANCELLED, "error": "cancelled"} if row.cancel_requested
+                              else {"status": FAILED, "error": reason})
+                    self._update(kind)(job_id, finished=time.time(), **values)
+            except RecordError as e:  # still cannot write: try again on the next round (said once)
+                if (kind, job_id) not in self._told:
+                    log.error("cannot mark %s %d failed yet (will retry): %s", kind, job_id, e)
+                    self._told.add((kind, job_id))
+                continue
+            del self.unrecorded[(kind, job_id)]
+            self._told.discard((kind, job_id))
+            self.notify(kind, job_id)
 
     def escalate(self, h: Handle, running: bool) -> None:
         """SIGKILL a cancelled job that outlived its SIGTERM by KILL_AFTER (and again every second)."""

@@ -21,7 +21,7 @@ import os
 import shutil
 import subprocess
 import uuid
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +83,7 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
     if folder.exists() and any(folder.iterdir()) and not (folder / "meta.json").is_file():
         raise CheckpointError(f"{folder} exists and is not a checkpoint; refusing to replace it")
     full_meta = {"metrics": {}, **(meta or {}), "format": FORMAT, "kind": model.kind,
-                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "code_version": code_version()}
+                 "created": datetime.now(UTC).isoformat(timespec="seconds"), "code_version": code_version()}
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = folder.parent / f".{folder.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -265,6 +265,12 @@ def _check_weights(folder: Path, kind: str, model: Model, tensors: dict[str, tor
     wrong = [f"{k} (saved {tuple(tensors[k].shape)}, model {tuple(expected[k].shape)})"
              for k in sorted(set(expected) & set(tensors)) if tensors[k].shape != expected[k].shape]
     if not (missing or unexpected or wrong):
+        # a diverged training run saves NaN or infinite weights: such a model loads, but "flies" by sitting still
+        broken = [k for k in sorted(tensors) if tensors[k].is_floating_point() and not torch.isfinite(tensors[k]).all()]
+        if broken:
+            raise CheckpointError(f"checkpoint {folder}: weights.safetensors holds NaN or infinite values in "
+                                  f"{', '.join(broken[:5])}" + (f", ... ({len(broken)} tensors)" if len(broken) > 5
+                                                                else ""))
         return
 
     def listing(names: list[str]) -> str:
