@@ -7,12 +7,13 @@
         D_i <- N_D rollouts of pi_hat_i, labelled by the expert;  D <- D u D_i
         pi_{i+1} <- one epoch on D (the optimizer's state carries over: the original rebuilt it, losing it)
 
-Rollouts fly in parallel worker processes that load the current policy from `run/policy/` (a checkpoint
-written before each collection); a rollout is cut when the drone strays 4.5 m from the path. With
-`dagger.mirror_ensemble` the learner flies as a test-time mirror ensemble (`gsmn.model.policy.MirrorEnsemble`;
-not in the paper), so that the rollouts visit the states of the policy as it is deployed; one network is
-trained. The run is resumable after a kill at any point: each phase writes down what it will do (the keys to
-discard, the rollouts to fly) in the saved state before doing it, episodes are written atomically, and the
+Rollouts fly in parallel worker processes (or Ray actors: `gsmn.executor`) that load the current policy from
+`run/policy/` (a checkpoint written before each collection; on Ray its files go through the object store once);
+a rollout is cut when the drone strays 4.5 m from the path. With `dagger.mirror_ensemble` the learner flies as
+a test-time mirror ensemble (`gsmn.model.policy.MirrorEnsemble`; not in the paper), so that the rollouts visit
+the states of the policy as it is deployed; one network is trained. The run is resumable after a kill at any
+point: each phase writes down what it will do (the keys to discard, the rollouts to fly) in the saved state
+before doing it, episodes are written atomically, and the
 epoch resumes batch by batch as in supervised training. A run resumed from its saved state without its dataset
 (the state restored on a new machine, the episodes gone) first refills D to M episodes with rollouts of the current
 mixture policy, and says so in its log (not in Algorithm 1: docs/design.md).
@@ -25,17 +26,16 @@ environments, seen for free (N_D of them: noisy from one iteration to the next, 
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import shutil
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from gsmn.config import RunConfig
+from gsmn.executor import Executor, ExecutorOptions, make_executor, open_shared, shared_key
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.rollout import task_for_env
@@ -65,15 +65,18 @@ def _init_worker(config: RunConfig, dataset_root: str, policy_dir: str) -> None:
                    iteration=None, learner=None)
 
 
-def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
-    """Fly one mixture rollout and write it; returns (key, expert steps, learner steps)."""
+def _rollout_one(job: tuple[str, int, int, float, int], policy=None) -> tuple[str, int, int]:
+    """Fly one mixture rollout and write it; returns (key, expert steps, learner steps). `policy`: the
+    executor's handle to the current policy checkpoint (`gsmn.executor.share`; default: the worker's
+    `policy_dir`)."""
     key, env_id, iteration, beta, seed = job
     w = _worker
     config: RunConfig = w["config"]
-    if w["iteration"] != iteration:  # the policy changes once per iteration
-        learner = load_policy(w["policy_dir"])
+    source = w["policy_dir"] if policy is None else policy
+    if w["iteration"] != (iteration, shared_key(source)):  # the policy changes once per iteration
+        learner = load_policy(open_shared(source))
         w["learner"] = MirrorEnsemble(learner) if config.dagger.mirror_ensemble else learner
-        w["iteration"] = iteration
+        w["iteration"] = (iteration, shared_key(source))
     policy = MixturePolicy(config, learner=w["learner"], beta=beta, rng=_rng(seed),
                            max_deviation=config.dagger.max_deviation)
     sample, record = fly_and_record(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
@@ -87,13 +90,15 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
                  stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
-                 init_optimizer: bool = False, on_iteration: Callable[[TrainState], None] | None = None) -> Path:
+                 init_optimizer: bool = False, on_iteration: Callable[[TrainState], None] | None = None,
+                 executor_options: ExecutorOptions | None = None) -> Path:
     """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
 
     Rollouts are drawn from `env_ids` (default: the environments of the expert store). With `init_optimizer`,
     Adam starts from the optimizer state saved in `init` (a run continued from an earlier run's checkpoint keeps
     its optimizer, as Algorithm 1's iterations do), else fresh. `on_iteration(state)` is called after each finished
-    iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere)."""
+    iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere).
+    `executor_options`: where the rollouts fly (default: `dagger.workers` processes on this host; `gsmn.executor`)."""
     torch.set_num_threads(config.train.threads)
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
@@ -138,8 +143,9 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
                 todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
                 if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy")
-                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
+                    shared = pool.share(run.root / "policy")  # the weights once per phase, not with each rollout
+                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
                         _report(run, on_progress, {"phase": "collect", "iteration": i, "iterations": dc.iterations,
                                                    "beta": round(beta, 4), "rollouts": len(todo), "done": k})
                 state.extra = {"phase": "discard", "refilled": len(state.extra["jobs"])}
@@ -165,8 +171,9 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                            "rollouts": n_jobs}
                 _report(run, on_progress, {**collect, "done": n_jobs - len(todo)}, force=True)
                 if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy")
-                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
+                    shared = pool.share(run.root / "policy")
+                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
                         _report(run, on_progress, {**collect, "done": n_jobs - len(todo) + k})
                 state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"]),
                                "refilled": state.extra.get("refilled", 0)}
@@ -193,7 +200,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                     break
     finally:
         if pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
-            pool.shutdown(cancel_futures=True)
+            pool.close()
     if state.epoch >= dc.iterations:
         _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
                 force=True)
@@ -206,9 +213,11 @@ def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force:
         on_progress(progress)
 
 
-def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(max_workers=config.dagger.workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_init_worker, initargs=(config, str(dataset.root), str(policy_dir)))
+def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path,
+               executor_options: ExecutorOptions | None = None) -> Executor:
+    """`dagger.workers` rollout workers (processes, also for one: training keeps its threads)."""
+    return make_executor(executor_options, config.dagger.workers, _init_worker,
+                         (config, str(dataset.root), str(policy_dir)))
 
 
 def _mixture_counts(dataset: EpisodeStore, jobs: list) -> dict[str, int]:
