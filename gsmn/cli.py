@@ -407,8 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = train_sub.add_parser("supervised", help="supervised learning on an episode store, resumable")
     t.add_argument("--data", required=True, help="episode store of expert training data (gsmn collect)")
     t.add_argument("--dev", default=None, help="episode store validated on after every epoch")
-    t.add_argument("--run", required=True, help="run folder: config, log.jsonl, state/, checkpoint/; "
-                   "an existing run resumes where it stopped")
+    t.add_argument("--run", "--run-dir", dest="run", required=True, help="run folder: config, log.jsonl, state/, "
+                   "checkpoint/; an existing run resumes where it stopped (--run-dir under torchrun, which would "
+                   "take --run for its own --run-path)")
     t.add_argument("--kind", default="gsmn", help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem")
     t.add_argument("--init", default=None, help="start from this checkpoint's weights")
     t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
@@ -418,7 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init", required=True, help="the supervised checkpoint to start from (pi_1)")
     t.add_argument("--data", required=True, help="the expert episode store the initial dataset is sampled from")
     t.add_argument("--dev", default=None, help="episode store validated on after every iteration")
-    t.add_argument("--run", required=True, help="run folder (holds the dataset of M rollouts); resumes")
+    t.add_argument("--run", "--run-dir", dest="run", required=True,
+                   help="run folder (holds the dataset of M rollouts); resumes (--run-dir under torchrun)")
     t.add_argument("--env-ids", default=None, help="environments for rollouts (default: those of --data)")
     t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
     executor.add_arguments(t)

@@ -39,10 +39,21 @@ from gsmn.executor import Executor, ExecutorOptions, make_executor, open_shared,
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.rollout import task_for_env
+from gsmn.training import distributed
 from gsmn.training.collect import MixturePolicy, fly_and_record
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
-from gsmn.training.supervised import Logger, Progress, finish_epoch, run_epoch, start_or_resume
+from gsmn.training.supervised import (
+    Logger,
+    Progress,
+    check_batch_size,
+    finish_epoch,
+    make_model_and_optimizer,
+    model_device,
+    on_rank_device,
+    run_epoch,
+    start_or_resume,
+)
 from gsmn.world.env import Env
 
 
@@ -103,12 +114,20 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
     dc, seed = config.dagger, config.train.seed
+    world = distributed.init(config.train.device)
     run = RunFolder(run_dir)
-    run.start(config)
+    if world.main:
+        run.start(config)
+    distributed.barrier(world)
+    config = on_rank_device(config, world)
+    check_batch_size(config, world)
     dataset = EpisodeStore(run.root / "dataset")
-    model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
-    state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
-    run.trim_log(state.epoch)
+    if world.main:
+        model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
+        state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
+        run.trim_log(state.epoch)
+    else:  # the weights, Adam and counters come from rank 0's saved state (`_follow`)
+        model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
     expert_keys = expert_store.keys()
     if env_ids is None:
         env_ids = sorted({expert_store.read_meta(k).get("env_id", -1) for k in expert_keys} - {-1})
@@ -118,19 +137,21 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     # dataset (a new machine: the run's state restored, its episodes gone) refills it before the next iteration
     expected = min(dc.dataset_size, len(expert_keys)) if expert_keys else dc.dataset_size
 
-    if state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
+    if world.main and state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
         chosen = _rng(seed, 0).choice(len(expert_keys), size=min(dc.dataset_size, len(expert_keys)), replace=False)
         for i in sorted(chosen):
             _link(expert_store.path(expert_keys[i]), dataset.path(expert_keys[i]))
         state.extra = {"phase": "discard"}
         run.save_state(model, optimizer, state)
+    if world.size > 1:
+        state = _follow(run, model, optimizer, world, state if world.main else None)
 
     pool = None
     try:
         while state.epoch < dc.iterations:
             i = state.epoch + 1  # iteration index, from 1
             beta = beta_schedule(dc.beta0, i)
-            if state.extra["phase"] == "discard" and len(dataset) < expected:  # e.g. lost with its machine
+            if world.main and state.extra["phase"] == "discard" and len(dataset) < expected:  # lost (a new machine)
                 missing = expected - len(dataset)
                 rng = _rng(seed, i, 1)
                 jobs = [(f"refill_{i:04d}_{k:03d}_env_{e:06d}", int(e), i, beta, int(rng.integers(2**31)))
@@ -139,7 +160,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                     f"{missing} rollouts of the current mixture policy (beta {beta:.4g}), labelled by the expert")
                 state.extra = {"phase": "refill", "jobs": jobs}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "refill":
+            if world.main and state.extra["phase"] == "refill":
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
                 todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
                 if todo:
@@ -150,7 +171,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                                                    "beta": round(beta, 4), "rollouts": len(todo), "done": k})
                 state.extra = {"phase": "discard", "refilled": len(state.extra["jobs"])}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "discard":
+            if world.main and state.extra["phase"] == "discard":
                 refilled = state.extra.get("refilled", 0)
                 keys = dataset.keys()
                 rng = _rng(seed, i)
@@ -161,7 +182,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                         for k, e in enumerate(new_envs)]
                 state.extra = {"phase": "collect", "drop": drop, "jobs": jobs, "refilled": refilled}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "collect":
+            if world.main and state.extra["phase"] == "collect":
                 for key in state.extra["drop"]:
                     dataset.delete(key)
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
@@ -178,12 +199,15 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"]),
                                "refilled": state.extra.get("refilled", 0)}
                 run.save_state(model, optimizer, state)
+            if world.size > 1:  # the other ranks wait while rank 0 collects, then train from its saved state
+                state = _follow(run, model, optimizer, world, state if world.main else None)
             if state.extra["phase"] == "train":
                 if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
-                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}):
+                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}, world):
                     return run.checkpoint_dir
-                _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
-                        force=True)
+                if world.main:
+                    _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
+                            force=True)
                 mix = state.extra["mix"]
                 record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
                           "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
@@ -193,18 +217,30 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 if state.extra.get("refilled"):
                     record["refilled"] = state.extra["refilled"]  # rollouts flown to refill a lost dataset
                 state.extra = {"phase": "discard"}
-                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log)
-                if on_iteration:
+                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log, world)
+                if on_iteration and world.main:
                     on_iteration(state)
-                if stop_after and stop_after(state):
+                if distributed.agree(bool(world.main and stop_after and stop_after(state)), world,
+                                     model_device(model)):
                     break
     finally:
         if pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
             pool.close()
-    if state.epoch >= dc.iterations:
+    if state.epoch >= dc.iterations and world.main:
         _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
                 force=True)
     return run.checkpoint_dir
+
+
+def _follow(run: RunFolder, model: torch.nn.Module, optimizer: torch.optim.Optimizer, world: distributed.World,
+            state: TrainState | None) -> TrainState:
+    """Every rank at rank 0's saved state: rank 0 (`state` given) has saved it; the others read it; then all go on
+    together (no rank reads while rank 0 may be writing)."""
+    distributed.barrier(world)
+    if state is None:
+        state = run.load_state(model, optimizer)
+    distributed.barrier(world)
+    return state
 
 
 def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force: bool = False) -> None:
