@@ -14,6 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
+from gsmn import executor
 from gsmn.config import PRESETS, ConfigError, RunConfig, leaf_fields, preset, with_overrides
 
 
@@ -169,6 +170,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from gsmn.task.metrics import summarize
 
     config = config_from_args(args)
+    executor_options = executor.options_from_args(args)
     env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
     if args.resume and not args.json:
         raise ValueError("--resume continues the evaluation that writes --json F (from F.partial.jsonl): give --json")
@@ -206,7 +208,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         flown = evaluate(args.system, [e for e in env_ids if e not in done_ids], config, args.checkpoint,
                          args.workers, on_episode=on_episode, record_dir=args.record,
-                         mirror_ensemble=args.mirror_ensemble, ensemble_with=args.ensemble_with)
+                         mirror_ensemble=args.mirror_ensemble, ensemble_with=args.ensemble_with,
+                         executor_options=executor_options)
     seconds = time.perf_counter() - t0
     by_id = {r.env_id: r for r in done + flown}
     records = [by_id[e] for e in env_ids]
@@ -255,7 +258,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     with _progress(len(env_ids), "expert episodes") as bar:
         bar.update(sum(1 for e in env_ids if episode_key(e) in store))
         collect_expert(store, env_ids, config, workers=args.workers,
-                       on_episode=lambda env_id, n: (frames.append(n), bar.update(1)))
+                       on_episode=lambda env_id, n: (frames.append(n), bar.update(1)),
+                       executor_options=executor.options_from_args(args))
     print(f"{args.out}: {len(store)} episodes ({len(store) - before} new, {sum(frames)} new frames)")
     return 0
 
@@ -308,7 +312,8 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
     try:
         checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
                                   EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids, log=_above(bars),
-                                  on_progress=bars, init_optimizer=args.init_optimizer)
+                                  on_progress=bars, init_optimizer=args.init_optimizer,
+                                  executor_options=executor.options_from_args(args))
     finally:
         bars.close()
     print(f"checkpoint: {checkpoint}")
@@ -453,6 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more checkpoints of the same learned system to fly beside --checkpoint as a test-time "
                         "ensemble, their actions averaged (with --mirror-ensemble each also flies the mirror image; "
                         "not in the paper)")
+    executor.add_arguments(p)
     add_config_arguments(p)
     p.set_defaults(func=cmd_eval)
 
@@ -469,6 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=None, help="how many environments of the split (default 750)")
     p.add_argument("--env-ids", default=None, help="'A:B' or '3,17,42' instead of a split")
     p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
+    executor.add_arguments(p)
     add_config_arguments(p)
     p.set_defaults(func=cmd_collect)
 
@@ -477,8 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = train_sub.add_parser("supervised", help="supervised learning on an episode store, resumable")
     t.add_argument("--data", required=True, help="episode store of expert training data (gsmn collect)")
     t.add_argument("--dev", default=None, help="episode store validated on after every epoch")
-    t.add_argument("--run", required=True, help="run folder: config, log.jsonl, state/, checkpoint/; "
-                   "an existing run resumes where it stopped")
+    t.add_argument("--run", "--run-dir", dest="run", required=True, help="run folder: config, log.jsonl, state/, "
+                   "checkpoint/; an existing run resumes where it stopped (--run-dir under torchrun, which would "
+                   "take --run for its own --run-path)")
     t.add_argument("--kind", default="gsmn", help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem")
     t.add_argument("--init", default=None, help="start from this checkpoint's weights")
     t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
@@ -488,9 +496,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init", required=True, help="the supervised checkpoint to start from (pi_1)")
     t.add_argument("--data", required=True, help="the expert episode store the initial dataset is sampled from")
     t.add_argument("--dev", default=None, help="episode store validated on after every iteration")
-    t.add_argument("--run", required=True, help="run folder (holds the dataset of M rollouts); resumes")
+    t.add_argument("--run", "--run-dir", dest="run", required=True,
+                   help="run folder (holds the dataset of M rollouts); resumes (--run-dir under torchrun)")
     t.add_argument("--env-ids", default=None, help="environments for rollouts (default: those of --data)")
     t.add_argument("--init-optimizer", action="store_true", help=INIT_OPTIMIZER_HELP)
+    executor.add_arguments(t)
     add_config_arguments(t)
     t.set_defaults(func=cmd_train_dagger)
 

@@ -2,8 +2,9 @@
 of the paper's Table 1 (success %, landmark success %, mean and median distance to the goal; the pruned,
 unambiguous subset in brackets).
 
-Workers are separate processes started with "spawn" (a forked MuJoCo/EGL context is not safe); each holds
-its own environment and policy and flies whole episodes. Results come back in the order of the ids.
+Workers are separate processes started with "spawn" (a forked MuJoCo/EGL context is not safe), or Ray actors
+(`gsmn.executor`); each holds its own environment and policy and flies whole episodes. Results come back in
+the order of the ids.
 
 With `record_dir`, a GSMN's final maps and per-step readings of each episode are written there
 (`gsmn.attribution.ModelTrace`, one .npz per environment), for failure attribution and the dashboard.
@@ -12,14 +13,13 @@ With `record_dir`, a GSMN's final maps and per-step readings of each episode are
 from __future__ import annotations
 
 import json
-import multiprocessing
 import platform
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import gsmn
 from gsmn.config import RunConfig
+from gsmn.executor import ExecutorOptions, make_executor
 from gsmn.task.baselines import (
     TRIVIAL_SYSTEMS,
     AverageAction,
@@ -147,38 +147,34 @@ def _run_one(env_id: int) -> EpisodeRecord:
 def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint: str | Path | None = None,
              workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
              render: bool | None = None, record_dir: str | Path | None = None,
-             mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = ()) -> list[EpisodeRecord]:
-    """Fly `system` on each environment id; records in the order of `env_ids`. `render` forces the camera
-    on or off (default: only for policies that look). `record_dir`: write each episode's ModelTrace there
-    (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`, `ensemble_with`: see
-    `make_policy`."""
+             mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = (),
+             executor_options: ExecutorOptions | None = None) -> list[EpisodeRecord]:
+    """Fly `system` on each environment id; records in the order of `env_ids`, on `workers` workers of the
+    executor `executor_options` names (default: worker processes on this host; `gsmn.executor`). `render`
+    forces the camera on or off (default: only for policies that look). `record_dir`: write each episode's
+    ModelTrace there (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`,
+    `ensemble_with`: see `make_policy`."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
     record_dir = str(record_dir) if record_dir is not None else None
     ensemble_with = [str(c) for c in ensemble_with]
     # fails here, clearly, before any worker starts
     policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with)
     records = []
-    if workers <= 1:
+
+    def in_process():  # one worker: this process, with the policy loaded above
         _use(policy, config, render, record_dir)
-        try:
-            for env_id in env_ids:
-                records.append(_run_one(env_id))
-                if on_episode:
-                    on_episode(records[-1])
-        finally:
-            _worker.pop("env").close()
-        return records
-    context = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                               initargs=(system, config, checkpoint, render, 1, record_dir,  # a core each
-                                         mirror_ensemble, ensemble_with))
+        return lambda: _worker.pop("env").close()
+
+    executor = make_executor(executor_options, workers, _init_worker,
+                             (system, config, checkpoint, render, 1, record_dir,  # a core each
+                              mirror_ensemble, ensemble_with), in_process=in_process)
     try:
-        for record in pool.map(_run_one, env_ids):
+        for record in executor.map(_run_one, env_ids):
             records.append(record)
             if on_episode:
                 on_episode(record)
     finally:  # stopped early (SIGTERM, Ctrl-C, an error): finish the episodes in flight, start no more
-        pool.shutdown(cancel_futures=True)
+        executor.close()
     return records
 
 

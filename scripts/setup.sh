@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up on a fresh machine: Debian packages for headless rendering, a virtual environment
 # in .venv, torch==2.13.0 first (the local CPU wheel; any other torch spec pulls GBs of CUDA packages),
-# then the project with its dev extras. Re-running it only re-installs when pyproject.toml changed.
+# then the project with its dev extras (GSMN_EXTRAS=dev,ray adds Ray, as ./test.sh asks). Re-running it only
+# re-installs when pyproject.toml or the extras changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,10 +20,11 @@ fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 stamp=.venv/.gsmn-installed
-want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
+extras=${GSMN_EXTRAS:-dev}
+want=$( (cat pyproject.toml; echo "extras=$extras") | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/pip install -q --upgrade pip
   .venv/bin/python -c 'import torch' 2>/dev/null || .venv/bin/pip install -q torch==2.13.0
-  .venv/bin/pip install -q -e '.[dev]'
+  .venv/bin/pip install -q -e ".[$extras]"
   echo "$want" > "$stamp"
 fi

@@ -29,9 +29,14 @@ def mirror_episode(sample: EpisodeSample) -> EpisodeSample:
                          actions=actions)
 
 
-def maybe_mirror(samples: list[EpisodeSample], probability: float, seed: int) -> list[EpisodeSample]:
-    """Each episode mirrored with `probability`, the draws seeded (a resumed run mirrors the same ones)."""
+def maybe_mirror(samples: list[EpisodeSample], probability: float, seed: int, positions: list[int] | None = None,
+                 count: int | None = None) -> list[EpisodeSample]:
+    """Each episode mirrored with `probability`, the draws seeded (a resumed run mirrors the same ones). With
+    `positions`, the samples are those places of a batch of `count` (a rank's shard) and take those places' draws."""
     if probability <= 0:
         return samples
-    draws = np.random.default_rng(np.random.SeedSequence([seed, 0x6D6972])).random(len(samples))
+    draws = np.random.default_rng(np.random.SeedSequence([seed, 0x6D6972])).random(
+        len(samples) if positions is None else count)
+    if positions is not None:
+        draws = draws[positions]
     return [mirror_episode(s) if u < probability else s for s, u in zip(samples, draws, strict=True)]

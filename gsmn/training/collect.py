@@ -9,13 +9,12 @@ many environments in parallel worker processes and resumes where a killed run st
 
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
 from gsmn.config import RunConfig
+from gsmn.executor import ExecutorOptions, make_executor
 from gsmn.model.batch import EpisodeSample
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.rollout import EpisodeRecord, Policy, PolicyAction, Task, rollout, task_for_env
@@ -113,26 +112,21 @@ def _collect_one(env_id: int) -> tuple[int, int]:
 
 
 def collect_expert(store: EpisodeStore, env_ids: Sequence[int], config: RunConfig, workers: int = 1,
-                   on_episode: Callable[[int, int], None] | None = None) -> list[int]:
-    """Record the expert on every environment not yet in the store; returns the ids collected now."""
+                   on_episode: Callable[[int, int], None] | None = None,
+                   executor_options: ExecutorOptions | None = None) -> list[int]:
+    """Record the expert on every environment not yet in the store; returns the ids collected now. Episodes fly
+    on `workers` workers of the executor `executor_options` names (default: processes on this host)."""
     todo = [e for e in env_ids if episode_key(e) not in store]
-    if workers <= 1:
-        _init_worker(config, str(store.root))
-        try:
-            for env_id in todo:
-                _, frames = _collect_one(env_id)
-                if on_episode:
-                    on_episode(env_id, frames)
-        finally:
-            _worker.pop("env").close()
-        return todo
-    context = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                               initargs=(config, str(store.root)))
+    executor = make_executor(executor_options, workers, _init_worker, (config, str(store.root)),
+                             in_process=lambda: (_init_worker(config, str(store.root)), _close_worker)[1])
     try:
-        for env_id, frames in pool.map(_collect_one, todo):
+        for env_id, frames in executor.map(_collect_one, todo):
             if on_episode:
                 on_episode(env_id, frames)
     finally:  # stopped early (SIGTERM, Ctrl-C, an error): finish the episodes in flight, start no more
-        pool.shutdown(cancel_futures=True)
+        executor.close()
     return todo
+
+
+def _close_worker() -> None:
+    _worker.pop("env").close()

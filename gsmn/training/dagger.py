@@ -7,12 +7,13 @@
         D_i <- N_D rollouts of pi_hat_i, labelled by the expert;  D <- D u D_i
         pi_{i+1} <- one epoch on D (the optimizer's state carries over: the original rebuilt it, losing it)
 
-Rollouts fly in parallel worker processes that load the current policy from `run/policy/` (a checkpoint
-written before each collection); a rollout is cut when the drone strays 4.5 m from the path. With
-`dagger.mirror_ensemble` the learner flies as a test-time mirror ensemble (`gsmn.model.policy.MirrorEnsemble`;
-not in the paper), so that the rollouts visit the states of the policy as it is deployed; one network is
-trained. The run is resumable after a kill at any point: each phase writes down what it will do (the keys to
-discard, the rollouts to fly) in the saved state before doing it, episodes are written atomically, and the
+Rollouts fly in parallel worker processes (or Ray actors: `gsmn.executor`) that load the current policy from
+`run/policy/` (a checkpoint written before each collection; on Ray its files go through the object store once);
+a rollout is cut when the drone strays 4.5 m from the path. With `dagger.mirror_ensemble` the learner flies as
+a test-time mirror ensemble (`gsmn.model.policy.MirrorEnsemble`; not in the paper), so that the rollouts visit
+the states of the policy as it is deployed; one network is trained. The run is resumable after a kill at any
+point: each phase writes down what it will do (the keys to discard, the rollouts to fly) in the saved state
+before doing it, episodes are written atomically, and the
 epoch resumes batch by batch as in supervised training. A run resumed from its saved state without its dataset
 (the state restored on a new machine, the episodes gone) first refills D to M episodes with rollouts of the current
 mixture policy, and says so in its log (not in Algorithm 1: docs/design.md).
@@ -25,24 +26,34 @@ environments, seen for free (N_D of them: noisy from one iteration to the next, 
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import shutil
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from gsmn.config import RunConfig
+from gsmn.executor import Executor, ExecutorOptions, make_executor, open_shared, shared_key
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
 from gsmn.task.rollout import task_for_env
+from gsmn.training import distributed
 from gsmn.training.collect import MixturePolicy, fly_and_record
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
-from gsmn.training.supervised import Logger, Progress, finish_epoch, run_epoch, start_or_resume
+from gsmn.training.supervised import (
+    Logger,
+    Progress,
+    check_batch_size,
+    finish_epoch,
+    make_model_and_optimizer,
+    model_device,
+    on_rank_device,
+    run_epoch,
+    start_or_resume,
+)
 from gsmn.world.env import Env
 
 
@@ -65,15 +76,18 @@ def _init_worker(config: RunConfig, dataset_root: str, policy_dir: str) -> None:
                    iteration=None, learner=None)
 
 
-def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
-    """Fly one mixture rollout and write it; returns (key, expert steps, learner steps)."""
+def _rollout_one(job: tuple[str, int, int, float, int], policy=None) -> tuple[str, int, int]:
+    """Fly one mixture rollout and write it; returns (key, expert steps, learner steps). `policy`: the
+    executor's handle to the current policy checkpoint (`gsmn.executor.share`; default: the worker's
+    `policy_dir`)."""
     key, env_id, iteration, beta, seed = job
     w = _worker
     config: RunConfig = w["config"]
-    if w["iteration"] != iteration:  # the policy changes once per iteration
-        learner = load_policy(w["policy_dir"])
+    source = w["policy_dir"] if policy is None else policy
+    if w["iteration"] != (iteration, shared_key(source)):  # the policy changes once per iteration
+        learner = load_policy(open_shared(source))
         w["learner"] = MirrorEnsemble(learner) if config.dagger.mirror_ensemble else learner
-        w["iteration"] = iteration
+        w["iteration"] = (iteration, shared_key(source))
     policy = MixturePolicy(config, learner=w["learner"], beta=beta, rng=_rng(seed),
                            max_deviation=config.dagger.max_deviation)
     sample, record = fly_and_record(w["env"], policy, task_for_env(env_id, config), config.task.horizon)
@@ -87,23 +101,33 @@ def _rollout_one(job: tuple[str, int, int, float, int]) -> tuple[str, int, int]:
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
                  stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
-                 init_optimizer: bool = False, on_iteration: Callable[[TrainState], None] | None = None) -> Path:
+                 init_optimizer: bool = False, on_iteration: Callable[[TrainState], None] | None = None,
+                 executor_options: ExecutorOptions | None = None) -> Path:
     """Run (or resume) DAggerFM from the checkpoint `init`; returns the final checkpoint folder.
 
     Rollouts are drawn from `env_ids` (default: the environments of the expert store). With `init_optimizer`,
     Adam starts from the optimizer state saved in `init` (a run continued from an earlier run's checkpoint keeps
     its optimizer, as Algorithm 1's iterations do), else fresh. `on_iteration(state)` is called after each finished
-    iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere)."""
+    iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere).
+    `executor_options`: where the rollouts fly (default: `dagger.workers` processes on this host; `gsmn.executor`)."""
     torch.set_num_threads(config.train.threads)
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
     dc, seed = config.dagger, config.train.seed
+    world = distributed.init(config.train.device)
     run = RunFolder(run_dir)
-    run.start(config)
+    if world.main:
+        run.start(config)
+    distributed.barrier(world)
+    config = on_rank_device(config, world)
+    check_batch_size(config, world)
     dataset = EpisodeStore(run.root / "dataset")
-    model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
-    state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
-    run.trim_log(state.epoch)
+    if world.main:
+        model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
+        state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
+        run.trim_log(state.epoch)
+    else:  # the weights, Adam and counters come from rank 0's saved state (`_follow`)
+        model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
     expert_keys = expert_store.keys()
     if env_ids is None:
         env_ids = sorted({expert_store.read_meta(k).get("env_id", -1) for k in expert_keys} - {-1})
@@ -113,19 +137,21 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     # dataset (a new machine: the run's state restored, its episodes gone) refills it before the next iteration
     expected = min(dc.dataset_size, len(expert_keys)) if expert_keys else dc.dataset_size
 
-    if state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
+    if world.main and state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
         chosen = _rng(seed, 0).choice(len(expert_keys), size=min(dc.dataset_size, len(expert_keys)), replace=False)
         for i in sorted(chosen):
             _link(expert_store.path(expert_keys[i]), dataset.path(expert_keys[i]))
         state.extra = {"phase": "discard"}
         run.save_state(model, optimizer, state)
+    if world.size > 1:
+        state = _follow(run, model, optimizer, world, state if world.main else None)
 
     pool = None
     try:
         while state.epoch < dc.iterations:
             i = state.epoch + 1  # iteration index, from 1
             beta = beta_schedule(dc.beta0, i)
-            if state.extra["phase"] == "discard" and len(dataset) < expected:  # e.g. lost with its machine
+            if world.main and state.extra["phase"] == "discard" and len(dataset) < expected:  # lost (a new machine)
                 missing = expected - len(dataset)
                 rng = _rng(seed, i, 1)
                 jobs = [(f"refill_{i:04d}_{k:03d}_env_{e:06d}", int(e), i, beta, int(rng.integers(2**31)))
@@ -134,17 +160,18 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                     f"{missing} rollouts of the current mixture policy (beta {beta:.4g}), labelled by the expert")
                 state.extra = {"phase": "refill", "jobs": jobs}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "refill":
+            if world.main and state.extra["phase"] == "refill":
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
                 todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
                 if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy")
-                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
+                    shared = pool.share(run.root / "policy")  # the weights once per phase, not with each rollout
+                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
                         _report(run, on_progress, {"phase": "collect", "iteration": i, "iterations": dc.iterations,
                                                    "beta": round(beta, 4), "rollouts": len(todo), "done": k})
                 state.extra = {"phase": "discard", "refilled": len(state.extra["jobs"])}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "discard":
+            if world.main and state.extra["phase"] == "discard":
                 refilled = state.extra.get("refilled", 0)
                 keys = dataset.keys()
                 rng = _rng(seed, i)
@@ -155,7 +182,7 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                         for k, e in enumerate(new_envs)]
                 state.extra = {"phase": "collect", "drop": drop, "jobs": jobs, "refilled": refilled}
                 run.save_state(model, optimizer, state)
-            if state.extra["phase"] == "collect":
+            if world.main and state.extra["phase"] == "collect":
                 for key in state.extra["drop"]:
                     dataset.delete(key)
                 save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
@@ -165,18 +192,22 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                            "rollouts": n_jobs}
                 _report(run, on_progress, {**collect, "done": n_jobs - len(todo)}, force=True)
                 if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy")
-                    for k, _ in enumerate(pool.map(_rollout_one, todo), start=1):
+                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
+                    shared = pool.share(run.root / "policy")
+                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
                         _report(run, on_progress, {**collect, "done": n_jobs - len(todo) + k})
                 state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"]),
                                "refilled": state.extra.get("refilled", 0)}
                 run.save_state(model, optimizer, state)
+            if world.size > 1:  # the other ranks wait while rank 0 collects, then train from its saved state
+                state = _follow(run, model, optimizer, world, state if world.main else None)
             if state.extra["phase"] == "train":
                 if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
-                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}):
+                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}, world):
                     return run.checkpoint_dir
-                _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
-                        force=True)
+                if world.main:
+                    _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
+                            force=True)
                 mix = state.extra["mix"]
                 record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
                           "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
@@ -186,18 +217,30 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
                 if state.extra.get("refilled"):
                     record["refilled"] = state.extra["refilled"]  # rollouts flown to refill a lost dataset
                 state.extra = {"phase": "discard"}
-                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log)
-                if on_iteration:
+                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log, world)
+                if on_iteration and world.main:
                     on_iteration(state)
-                if stop_after and stop_after(state):
+                if distributed.agree(bool(world.main and stop_after and stop_after(state)), world,
+                                     model_device(model)):
                     break
     finally:
         if pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
-            pool.shutdown(cancel_futures=True)
-    if state.epoch >= dc.iterations:
+            pool.close()
+    if state.epoch >= dc.iterations and world.main:
         _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
                 force=True)
     return run.checkpoint_dir
+
+
+def _follow(run: RunFolder, model: torch.nn.Module, optimizer: torch.optim.Optimizer, world: distributed.World,
+            state: TrainState | None) -> TrainState:
+    """Every rank at rank 0's saved state: rank 0 (`state` given) has saved it; the others read it; then all go on
+    together (no rank reads while rank 0 may be writing)."""
+    distributed.barrier(world)
+    if state is None:
+        state = run.load_state(model, optimizer)
+    distributed.barrier(world)
+    return state
 
 
 def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force: bool = False) -> None:
@@ -206,9 +249,11 @@ def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force:
         on_progress(progress)
 
 
-def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(max_workers=config.dagger.workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_init_worker, initargs=(config, str(dataset.root), str(policy_dir)))
+def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path,
+               executor_options: ExecutorOptions | None = None) -> Executor:
+    """`dagger.workers` rollout workers (processes, also for one: training keeps its threads)."""
+    return make_executor(executor_options, config.dagger.workers, _init_worker,
+                         (config, str(dataset.root), str(policy_dir)))
 
 
 def _mixture_counts(dataset: EpisodeStore, jobs: list) -> dict[str, int]:

@@ -27,7 +27,9 @@ from gsmn.model.fpv import freeze_all_but_memory
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
 from gsmn.model.vocabulary import Vocabulary
+from gsmn.training import distributed
 from gsmn.training.augment import maybe_mirror
+from gsmn.training.distributed import SINGLE, World
 from gsmn.training.run import RunFolder, TrainState
 from gsmn.training.store import EpisodeStore
 
@@ -46,14 +48,19 @@ def epoch_batches(keys: list[str], batch_size: int, seed: int, epoch: int) -> li
 
 
 def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirror: float, seed: int, epoch: int,
-                 prefetch: int = 0) -> Iterator[list]:
+                 prefetch: int = 0, world: World = SINGLE) -> Iterator[list]:
     """The episodes of batches[start:], each batch mirrored as its seed says, in order. With `prefetch` > 0 that
     many threads read up to 2 * prefetch batches ahead of the one being trained on, so reading overlaps training;
     the batches are the same either way. The threads share the GIL with the training loop: decompressing and
     flipping arrays release it, the rest does not (worker processes, tried, cost more than they saved here:
-    docs/design.md, "Reading ahead")."""
+    docs/design.md, "Reading ahead"). With several ranks (`gsmn.training.distributed`), this rank's shard of each
+    batch."""
     def load(i: int) -> list:
-        return maybe_mirror([store.read(key) for key in batches[i]], mirror, batch_seed(seed, epoch, i))
+        if world.size <= 1:
+            return maybe_mirror([store.read(key) for key in batches[i]], mirror, batch_seed(seed, epoch, i))
+        keys, _ = world.shard(batches[i])
+        return maybe_mirror([store.read(key) for key in keys], mirror, batch_seed(seed, epoch, i),
+                            world.positions(len(batches[i])), len(batches[i]))
 
     if prefetch <= 0:
         for i in range(start, len(batches)):
@@ -73,8 +80,21 @@ def read_batches(store: EpisodeStore, batches: list[list[str]], start: int, mirr
 
 
 def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vocabulary: Vocabulary,
-               config: RunConfig, seed: int) -> dict[str, float]:
-    """One optimizer step on a batch of episodes; returns the loss terms and accuracies as floats."""
+               config: RunConfig, seed: int, weight: float = 1.0, world: World = SINGLE) -> dict[str, float]:
+    """One optimizer step on a batch of episodes; returns the loss terms and accuracies as floats. On several
+    ranks, `samples` is this rank's shard, its loss weighted by `weight` and the gradients averaged over the
+    ranks before the step (`gsmn.training.distributed`)."""
+    optimizer.zero_grad(set_to_none=True)
+    values = backward(model, samples, vocabulary, config, seed, weight)
+    distributed.average_gradients(model, world)
+    optimizer.step()
+    return values
+
+
+def backward(model: Model, samples: list, vocabulary: Vocabulary, config: RunConfig, seed: int,
+             weight: float = 1.0) -> dict[str, float]:
+    """The loss of a batch, its gradient (times `weight`) added to the parameters'; returns the loss terms and
+    accuracies (unweighted) as floats."""
     device = model_device(model)
     torch.manual_seed(seed)  # dropout (on every device)
     generator = torch.Generator(device=device).manual_seed(seed)  # pose noise, sampled negatives
@@ -82,9 +102,7 @@ def train_step(model: Model, optimizer: torch.optim.Optimizer, samples: list, vo
     model.train()
     outputs = forward_batch(model, batch, generator=generator)
     losses = compute_losses(model, batch, outputs, config.loss, generator=generator)
-    optimizer.zero_grad(set_to_none=True)
-    losses.total.backward()
-    optimizer.step()
+    (losses.total if weight == 1.0 else losses.total * weight).backward()
     return flatten(losses, frames=int(batch.mask.sum()))
 
 
@@ -182,20 +200,22 @@ def make_model_and_optimizer(kind: str, config: RunConfig, init: Path | None, in
 def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
               config: RunConfig, store: EpisodeStore, keys: list[str], state: TrainState, epoch: int,
               stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
-              progress: dict | None = None) -> bool:
+              progress: dict | None = None, world: World = SINGLE) -> bool:
     """Train on the batches of `epoch` from `state.batch` on, saving state every `save_every_seconds`.
     Returns False when `stop_after` ended it early (state saved), True when the epoch is done.
     After each batch, `progress` (e.g. {"phase": "train", "epoch": 3}) plus the batch counters and the batch's
-    loss is written to the run's progress.json (throttled) and passed to `on_progress`."""
+    loss is written to the run's progress.json (throttled) and passed to `on_progress`. On several ranks each
+    trains on its shard of every batch, rank 0 alone writes, and all save (and stop) at rank 0's word."""
     tc = config.train
     batches = epoch_batches(keys, tc.batch_size, tc.seed, epoch)
     progress = {"phase": "train", **(progress or {"epoch": epoch + 1})}
     last_save = time.monotonic()
-    with closing(read_batches(store, batches, state.batch, tc.mirror, tc.seed, epoch, tc.prefetch)) as reader:
+    with closing(read_batches(store, batches, state.batch, tc.mirror, tc.seed, epoch, tc.prefetch, world)) as reader:
         t0 = time.monotonic()  # a batch's seconds count the wait for its episodes, as without prefetching
         for samples in reader:
-            seed = batch_seed(tc.seed, epoch, state.batch)
-            values = train_step(model, optimizer, samples, vocabulary, config, seed)
+            seed = distributed.rank_seed(batch_seed(tc.seed, epoch, state.batch), world)
+            weight = world.shard(batches[state.batch])[1] if world.size > 1 else 1.0
+            values = train_step(model, optimizer, samples, vocabulary, config, seed, weight, world)
             values["seconds"] = time.monotonic() - t0
             _accumulate(state.sums, state.counts, values)
             state.batch += 1
@@ -203,13 +223,17 @@ def run_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vo
             state.seconds += values["seconds"]
             now = {**progress, "batch": state.batch, "batches": len(batches), "step": state.step,
                    "loss": values.get("loss"), "frames": values.get("frames")}
-            run.write_progress(now, force=state.batch == len(batches))
-            if on_progress:
-                on_progress(now)
-            if time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches):
-                run.save_state(model, optimizer, state)
+            if world.main:
+                run.write_progress(now, force=state.batch == len(batches))
+                if on_progress:
+                    on_progress(now)
+            due = time.monotonic() - last_save >= tc.save_every_seconds and state.batch < len(batches)
+            if distributed.agree(due, world, model_device(model)):
+                if world.main:
+                    run.save_state(model, optimizer, state)
+                distributed.barrier(world)
                 last_save = time.monotonic()
-                if stop_after and stop_after(state):
+                if distributed.agree(bool(world.main and stop_after and stop_after(state)), world, model_device(model)):
                     return False
             t0 = time.monotonic()
     return True
@@ -227,8 +251,13 @@ def start_or_resume(run: RunFolder, kind: str, config: RunConfig, init: Path | N
 
 def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer, vocabulary: Vocabulary,
                  config: RunConfig, state: TrainState, record: dict, dev_store: EpisodeStore | None,
-                 log: Logger) -> None:
-    """Validate, log, write the checkpoint, and save the state of the next epoch."""
+                 log: Logger, world: World = SINGLE) -> None:
+    """Validate, log, write the checkpoint, and save the state of the next epoch (rank 0; the other ranks only
+    count the epoch, and all go on together)."""
+    if not world.main:
+        state.epoch, state.batch, state.sums, state.counts = state.epoch + 1, 0, {}, {}
+        distributed.barrier(world)
+        return
     record.update(step=state.step, seconds=round(state.seconds, 1), train=_means(state.sums, state.counts))
     if config.train.mirror:
         record["mirror"] = config.train.mirror
@@ -240,6 +269,7 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
                     optimizer_state=optimizer.state_dict())
     state.epoch, state.batch, state.sums, state.counts = state.epoch + 1, 0, {}, {}
     run.save_state(model, optimizer, state)
+    distributed.barrier(world)
 
 
 def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_store: EpisodeStore,
@@ -252,31 +282,59 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
     after each finished epoch, once its checkpoint and state are saved.
 
     `stop_after(state)` is asked after every saved state and may end the call early (the run stays
-    resumable); tests use it, the command line does not."""
+    resumable); tests use it, the command line does not.
+
+    Started by torchrun with several processes, each is one rank of a data-parallel run
+    (`gsmn.training.distributed`): rank 0 alone writes the run folder, which every rank must see."""
     torch.set_num_threads(config.train.threads)
+    world = distributed.init(config.train.device)
     if init is not None:
         config = with_model_of(config, init)
     run = RunFolder(run_dir)
-    run.start(config)
+    if world.main:
+        run.start(config)
+    distributed.barrier(world)
+    config = on_rank_device(config, world)
     model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
     state = TrainState() if state is None else state
-    run.trim_log(state.epoch)
+    if world.main:
+        run.trim_log(state.epoch)
     keys = train_store.keys()
     if not keys:
         raise ValueError(f"no episodes in {train_store.root}; collect some with `gsmn collect`")
+    check_batch_size(config, world)
     while state.epoch < config.train.epochs:
         if not run_epoch(run, model, optimizer, vocabulary, config, train_store, keys, state, state.epoch, stop_after,
-                         on_progress, {"epoch": state.epoch + 1, "epochs": config.train.epochs}):
+                         on_progress, {"epoch": state.epoch + 1, "epochs": config.train.epochs}, world):
             return run.checkpoint_dir
-        run.write_progress({"phase": "validate", "epoch": state.epoch + 1, "epochs": config.train.epochs}, force=True)
-        finish_epoch(run, model, optimizer, vocabulary, config, state, {"epoch": state.epoch + 1}, dev_store, log)
-        if on_epoch:
+        if world.main:
+            run.write_progress({"phase": "validate", "epoch": state.epoch + 1, "epochs": config.train.epochs},
+                               force=True)
+        finish_epoch(run, model, optimizer, vocabulary, config, state, {"epoch": state.epoch + 1}, dev_store, log,
+                     world)
+        if on_epoch and world.main:
             on_epoch(state)
-        if stop_after and stop_after(state):
+        if distributed.agree(bool(world.main and stop_after and stop_after(state)), world, model_device(model)):
             break
-    if state.epoch >= config.train.epochs:
+    if state.epoch >= config.train.epochs and world.main:
         run.write_progress({"phase": "done", "epoch": state.epoch, "epochs": config.train.epochs}, force=True)
     return run.checkpoint_dir
+
+
+def check_batch_size(config: RunConfig, world: World) -> None:
+    if config.train.batch_size < world.size:
+        raise ValueError(f"--train.batch-size {config.train.batch_size} is the global batch, split over the "
+                         f"{world.size} ranks: give at least {world.size} (a multiple keeps every rank busy)")
+
+
+def on_rank_device(config: RunConfig, world: World) -> RunConfig:
+    """The config this rank computes with: on CUDA, its own GPU (the run folder records rank 0's)."""
+    import dataclasses
+
+    device = distributed.device_for(world, config.train.device)
+    if device == config.train.device:
+        return config
+    return dataclasses.replace(config, train=dataclasses.replace(config.train, device=device))
 
 
 def _summary_line(record: dict) -> str:
