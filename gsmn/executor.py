@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -49,21 +50,22 @@ class ExecutorOptions:
 LOCAL = ExecutorOptions()
 
 
-class Executor:
+class Executor(ABC):
     """`workers` workers, each set up by `initializer(*initargs)` in its own process (the serial backend: in this
     one), running `fn(job)` or `fn(job, shared)`; `map` yields the results in the order of the jobs."""
 
     remote = False  # True where workers may run on other hosts (then `share` sends the bytes, not a path)
 
+    @abstractmethod
     def map(self, fn: Callable, jobs: Sequence, shared=None) -> Iterator:
-        raise NotImplementedError
+        """`fn(job)` (or `fn(job, shared)`) of every job on the workers, yielded in the order of `jobs`."""
 
     def share(self, folder: Path | str):
         """A handle to a folder's files for the workers (see `open_shared`): here, its path."""
         return str(folder)
 
-    def close(self) -> None:
-        pass
+    def close(self) -> None:  # noqa: B027 - nothing to release unless a backend holds workers
+        """Release the workers (finishing the jobs in flight)."""
 
     def __enter__(self) -> Executor:
         return self
