@@ -270,6 +270,7 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     """Train and evaluate one system, resuming from its run folders or its stage copy; returns its evaluation, or
     None when `stop_after(stage, state)` ("supervised" or "dagger", the run's TrainState after a saved epoch) ended
     it early (the stage copy made by then is kept)."""
+    from gsmn.evaluation import write_json
     from gsmn.training.dagger import train_dagger
     from gsmn.training.store import EpisodeStore
     from gsmn.training.supervised import train_supervised
@@ -326,7 +327,7 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     evaluation = ship / "evaluation.json"
     if not evaluation.is_file():
         results = evaluate_system(system, layout, recipe, threads, log)
-        write_json_atomic(evaluation, results)
+        write_json(evaluation, results)
         stage = {**(read_stage(ship) or {}), "evaluated": True}
         (ship / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
         s = results["summary"]
@@ -376,12 +377,6 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
 
 
 PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabilities")  # not kept: the bulk
-
-
-def write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    tmp.replace(path)
 
 
 # -- the programme ----------------------------------------------------------------------------------------------
