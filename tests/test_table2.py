@@ -115,7 +115,14 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert {"env_id", "success", "goal_distance", "stage", "final_x"} <= set(episode) and "trajectory" not in episode
     assert (episode["stage"] is None) == episode["success"]
     assert json.loads((ship / "stage.json").read_text())["evaluated"] is True
-    assert _git(repo, "log", "-1", "--format=%s").strip() == "table2: GSMN, evaluated on 1 dev environments"
+    assert _git(repo, "log", "-2", "--format=%s").splitlines() == [
+        "table2: GSMN, evaluated on 1 test environments (Table 1)", "table2: GSMN, evaluated on 1 dev environments"]
+    # the control is also flown on Table 1's test environments, kept the same way
+    test = json.loads((ship / "table1.json").read_text())
+    assert test["split"] == "test" and test["env_ids"] == table2.environments(recipe)["table1"] == [70]
+    assert len(test["episodes"]) == 1 and "trajectory" not in test["episodes"][0]
+    assert f"| GSMN, Table 2's recipe (`checkpoints/table2/gsmn`) | {test['summary']['success']:.2f} (" \
+        in table2.table1_markdown(layout.ship)
     assert _git(repo, "status", "--porcelain") == ""
     table = table2.table_markdown(layout.ship)
     assert "| GSMN | " in table and "| GSMN without J_ground | not yet |" in table

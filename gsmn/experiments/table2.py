@@ -10,6 +10,7 @@ epochs, DAggerFM schedule, seeds, evaluation) is the `Recipe`'s, the same for al
                  `recipe.train_envs`), from the supervised checkpoint, with Adam started afresh
     evaluate     flown plainly on the first `recipe.eval_envs` dev environments with the maps recorded, each failure
                  attributed to a stage (gsmn.attribution)
+    table 1      the control and -J_plan (`TABLE1`) also on Table 1's first `recipe.table1_envs` test environments
 
 Surviving the loss of the machine. `runs/` and `data/` may be gone at the next start. The expert data is rebuilt by
 collection (deterministic by environment id). Each system's latest finished stage (every `publish_every_epochs`
@@ -18,8 +19,8 @@ is copied to `SHIP/<name>/` (a checkpoint folder: weights, config, vocabulary, m
 small JSON files in `run/`; never images), replacing the previous copy; with `git_commit` it is committed at once.
 A start whose run folder is behind that copy restores the run from it and goes on; a DAggerFM run restored this
 way has no dataset and refills it from the current mixture policy (gsmn.training.dagger). The finished evaluation
-is kept there too, compactly (`evaluation.json`: one line of figures per episode, no trajectories), so the table
-needs nothing else.
+is kept there too, compactly (`evaluation.json`, `table1.json`: one line of figures per episode, no trajectories),
+so the tables need nothing else.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ class Recipe:
     dagger_learning_rate: float = 3e-4
     fresh_envs: int = 2400  # the train environments after the first `train_envs` that DAggerFM flies in
     eval_envs: int = 300  # the first N dev environments, flown plainly
+    table1_envs: int = 500  # the first N test environments (Table 1's), flown by the TABLE1 systems
     publish_every_epochs: int = 4
     publish_every_iterations: int = 5
     control_gate: float = 60.0  # the control's dev success (%) below which the drops would be noise: stop there
@@ -69,7 +71,7 @@ RECIPES = {
     "paper": Recipe(),
     # seconds per stage: the tests run the whole programme with it
     "tiny": Recipe(train_envs=3, dev_envs=2, epochs=2, iterations=2, rollouts=2, dataset_size=2, fresh_envs=4,
-                   eval_envs=2, publish_every_epochs=1, publish_every_iterations=1, control_gate=0.0, preset="tiny"),
+                   eval_envs=2, table1_envs=1, publish_every_epochs=1, publish_every_iterations=1, control_gate=0.0, preset="tiny"),
 }
 
 
@@ -93,6 +95,8 @@ SYSTEMS = (
     System("pose-noise", "GSMN + pose noise", "gsmn", {"model.pose_noise_std": 0.5}),
 )
 BY_NAME = {s.name: s for s in SYSTEMS}
+# flown on Table 1's test environments too: the -J_plan row of Table 1 beside a GSMN of the same recipe
+TABLE1 = ("gsmn", "no-plan")
 
 
 def system_configs(system: System, recipe: Recipe, threads: int = 2) -> tuple[RunConfig, RunConfig]:
@@ -114,7 +118,13 @@ def environments(recipe: Recipe) -> dict[str, list[int]]:
     train = split_env_ids("train", recipe.train_envs + recipe.fresh_envs)
     fresh = train[recipe.train_envs:]
     return {"train": train[:recipe.train_envs], "dev": split_env_ids("dev", recipe.dev_envs),
-            "seed": fresh[:recipe.dataset_size], "fresh": fresh, "eval": split_env_ids("dev", recipe.eval_envs)}
+            "seed": fresh[:recipe.dataset_size], "fresh": fresh, "eval": split_env_ids("dev", recipe.eval_envs),
+            "table1": split_env_ids("test", recipe.table1_envs)}
+
+
+# the two evaluations: the dev environments of Table 2 (every system), the test environments of Table 1 (TABLE1)
+EVALUATIONS = {"dev": ("eval", "evaluation.json", "evaluation_full.json", "record"),
+               "test": ("table1", "table1.json", "table1_full.json", "record_table1")}
 
 
 # -- stage copies ---------------------------------------------------------------------------------------------
@@ -334,6 +344,16 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
         log(f"{system.name}: {s['success']:.1f} % success on {s['count']} dev environments")
         if commit:
             git_commit([ship], f"table2: {system.label}, evaluated on {s['count']} dev environments", log)
+
+    # 4. Table 1's test environments, for the control and -J_plan
+    table1 = ship / EVALUATIONS["test"][1]
+    if system.name in TABLE1 and not table1.is_file():
+        results = evaluate_system(system, layout, recipe, threads, log, split="test")
+        write_json(table1, results)
+        s = results["summary"]
+        log(f"{system.name}: {s['success']:.1f} % success on {s['count']} test environments (Table 1)")
+        if commit:
+            git_commit([ship], f"table2: {system.label}, evaluated on {s['count']} test environments (Table 1)", log)
     return json.loads(evaluation.read_text())
 
 
@@ -344,24 +364,26 @@ def _at_epoch_end(stop_after, stage: str):
     return lambda state: state.batch == 0 and stop_after(stage, state)
 
 
-def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print) -> dict:
-    """Fly the finished system on the dev environments with `gsmn eval` (resumable: its partial file), record the
-    maps, attribute each failure; a compact result."""
+def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print,
+                    split: str = "dev") -> dict:
+    """Fly the finished system on the dev (or Table 1's test) environments with `gsmn eval` (resumable: its partial
+    file), record the maps, attribute each failure; a compact result."""
     from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
     from gsmn.model.checkpoint import load_checkpoint
     from gsmn.task.metrics import summarize
 
     ship = layout.shipped(system)
     folder = layout.out / system.name
-    full, record = folder / "evaluation_full.json", folder / "record"
-    ids = environments(recipe)["eval"]
+    which, _, full_name, record_name = EVALUATIONS[split]
+    full, record = folder / full_name, folder / record_name
+    ids = environments(recipe)[which]
     if not full.is_file():
         command = [sys.executable, "-m", "gsmn.cli", "eval", "--system", system.kind, "--checkpoint", str(ship),
                    "--env-ids", ",".join(map(str, ids)), "--json", str(full), "--record", str(record),
                    "--workers", "1", "--threads", str(threads), "--preset", recipe.preset]
         if Path(str(full) + ".partial.jsonl").is_file():
             command.append("--resume")
-        log(f"{system.name}: flying {len(ids)} dev environments")
+        log(f"{system.name}: flying {len(ids)} {split} environments")
         subprocess.run(command, check=True)
     results = json.loads(full.read_text())
     model, *_ = load_checkpoint(ship)
@@ -372,7 +394,7 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
         if not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
             stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
         episodes.append({k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage})
-    return {"system": system.name, "label": system.label, "recipe": recipe.to_dict(), "env_ids": ids,
+    return {"system": system.name, "label": system.label, "recipe": recipe.to_dict(), "split": split, "env_ids": ids,
             "summary": summarize(results["episodes"], config.task.success_radius).to_dict(), "episodes": episodes}
 
 
@@ -443,7 +465,11 @@ def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, 
     folder = layout.out / system.name
     partial = folder / "evaluation_full.json.partial.jsonl"
     if (layout.shipped(system) / "evaluation.json").is_file():
-        return "evaluated", 1, 1
+        if system.name not in TABLE1 or (layout.shipped(system) / "table1.json").is_file():
+            return "evaluated", 1, 1
+        partial = folder / "table1_full.json.partial.jsonl"
+        done = max(0, len(partial.read_text().splitlines()) - 1) if partial.is_file() else 0
+        return "evaluating on test (Table 1)", done, recipe.table1_envs
     if partial.is_file() or (folder / "evaluation_full.json").is_file():
         done = max(0, len(partial.read_text().splitlines()) - 1) if partial.is_file() else recipe.eval_envs
         return "evaluating on dev", done, recipe.eval_envs
@@ -524,6 +550,24 @@ def table_markdown(ship: Path) -> str:
     return "\n".join(lines)
 
 
+def table1_markdown(ship: Path) -> str:
+    """Table 1's rows of the TABLE1 systems on the test environments, in docs/results.md's columns: ours (pruned)."""
+    lines = []
+    for name in TABLE1:
+        path = ship / name / EVALUATIONS["test"][1]
+        if not path.is_file():
+            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | not yet |")
+            continue
+        s = json.loads(path.read_text())["summary"]
+        p = s["pruned"]
+        lines.append(f"| {BY_NAME[name].label}, Table 2's recipe (`checkpoints/table2/{name}`) | "
+                     f"{s['success']:.2f} ({p['success']:.2f}) | {s['landmark_success']:.2f} "
+                     f"({p['landmark_success']:.2f}) | {s['mean_distance']:.2f} ({p['mean_distance']:.2f}) | "
+                     f"{s['median_distance']:.2f} ({p['median_distance']:.2f}) | {s['count']} test environments |")
+    return "\n".join(["| system | success % | landmark % | mean dist m | median dist m | environments |",
+                      "|---|---|---|---|---|---|", *lines])
+
+
 # -- command line -----------------------------------------------------------------------------------------------
 def add_parser(sub) -> None:
     import argparse
@@ -540,7 +584,8 @@ def add_parser(sub) -> None:
     t.add_argument("--recipe", choices=sorted(RECIPES), default="paper", help="the budget (tiny: seconds, for tests)")
     t.add_argument("--git-commit", action="store_true",
                    help="commit each system's stage copy as soon as it is written (so a new machine resumes it)")
-    t.add_argument("--table", action="store_true", help="print Table 2 from the kept evaluations and exit")
+    t.add_argument("--table", action="store_true",
+                   help="print Table 2 (dev) and the Table 1 rows (test) from the kept evaluations and exit")
     t.add_argument("--system", help=argparse.SUPPRESS)  # one system in this process: what the programme runs
     t.add_argument("--threads", type=int, default=2, help=argparse.SUPPRESS)
     t.set_defaults(func=cmd_table2)
@@ -551,6 +596,8 @@ def cmd_table2(args) -> int:
     recipe = RECIPES[args.recipe]
     if args.table:
         print(table_markdown(layout.ship))
+        print()
+        print(table1_markdown(layout.ship))
         return 0
     if args.system:
         from gsmn.model.runtime import keep_freed_memory
