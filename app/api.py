@@ -92,6 +92,9 @@ class EpisodeSummary(BaseModel):
     steps_per_second: float | None
     result: ResultModel | None
     error: str | None
+    pinned: bool = Field(False, description="kept whatever the retention limit (PUT /api/episodes/{id}/pin)")
+    created: float | None = Field(None, description="unix time it was queued or started flying")
+    bytes: int | None = Field(None, description="what its steps take in the record (null: not written yet)")
 
 
 class ModelStep(BaseModel):
@@ -174,11 +177,12 @@ def summary(e: Episode) -> EpisodeSummary:
                           instruction=i.text, landmark=i.noun_phrase, side=i.side, goal_x=i.goal_x, goal_y=i.goal_y,
                           policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
-                          error=e.error)
+                          error=e.error, created=e.created)
 
 
-def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAPI:
-    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs."""
+def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=None) -> FastAPI:
+    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs; with
+    `keeper` (app.kept.EpisodeKeeper) every episode kept in the record: searched, pinned, exported."""
     app = FastAPI(title="GSMN dashboard API", version="1.0",
                   description="Fly instructions with GSMN (Blukis et al., RSS 2018) on the MuJoCo quadcopter, read "
                               "episodes step by step, and ground counterfactual instructions on a semantic map "
@@ -220,7 +224,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
     def episode_or_404(episode_id: int) -> Episode:
         episode = runner.episodes.get(episode_id)
         if episode is None:
-            raise NotFound(f"no episode {episode_id} (episodes are kept in memory, the oldest dropped)")
+            raise NotFound(runner.episodes.missing(episode_id))
         return episode
 
     @app.get("/api/health", response_model=Health, summary="Is the server up, and is a model loaded")
@@ -240,14 +244,22 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
                         COMMAND_TIMEOUT)
         return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction, policy=e.policy)
 
-    @app.get("/api/episodes", response_model=list[EpisodeSummary], summary="Episodes kept in memory, oldest first")
-    def list_episodes() -> list[EpisodeSummary]:
-        return [summary(e) for e in runner.episodes.all()]
+    if keeper is not None:
+        from app.kept_api import add_kept_routes
+
+        add_kept_routes(app, runner, keeper, summary)
+    else:
+        @app.get("/api/episodes", response_model=list[EpisodeSummary], summary="Episodes kept in memory, oldest "
+                 "first")
+        def list_episodes() -> list[EpisodeSummary]:
+            return [summary(e) for e in runner.episodes.all()]
 
     @app.get("/api/episodes/{episode_id}", response_model=EpisodeSummary, responses=responses(404, 422),
              summary="Status, steps and result")
     def get_episode(episode_id: EpisodeId) -> EpisodeSummary:
-        return summary(episode_or_404(episode_id))
+        e = episode_or_404(episode_id)
+        pinned = getattr(runner.episodes, "pinned", None)  # app.kept.KeptStore
+        return summary(e).model_copy(update={"pinned": pinned(e.id)}) if pinned else summary(e)
 
     @app.delete("/api/episodes/{episode_id}", response_model=EpisodeSummary,
                 responses=responses(404, 409, 422, 503), summary="Cancel an episode: drop it from the queue, or end "

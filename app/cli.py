@@ -26,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
     p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
     p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
+    p.add_argument("--keep-mb", type=float, default=None, help="disk space for the episodes kept (every episode "
+                   "flown in the page or over the API); past it the oldest unpinned ones are removed (default: 2000)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_serve)
 
@@ -39,7 +41,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
                               api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
-                              max_runs=args.max_runs, max_evaluations=args.max_evaluations, token=args.token)
+                              max_runs=args.max_runs, max_evaluations=args.max_evaluations, token=args.token,
+                              keep_mb=args.keep_mb)
     except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
         print(f"gsmn serve: error: {e}", file=sys.stderr)
         return 2
