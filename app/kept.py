@@ -35,7 +35,7 @@ import numpy as np
 from app.commands import RunnerListener
 from app.db import Database
 from app.recording import FAILED, FINISHED, LIVE, Episode, EpisodeResult, EpisodeStore, StepMaps, StepRecord
-from gsmn.config import RunConfig
+from gsmn.config import RunConfig, WorldConfig
 from gsmn.task.instructions import Instruction
 from gsmn.task.rollout import Task
 from gsmn.world.spec import world_for_env
@@ -98,8 +98,11 @@ def step_of_row(row) -> StepRecord:
                       v=d["v"], omega=d["omega"], stop=d["stop"], maps=maps, stop_probability=d["stop_probability"])
 
 
-def task_json(task: Task) -> str:
-    return json.dumps({"instruction": asdict(task.instruction), "path": np.asarray(task.path).round(4).tolist()})
+def task_json(task: Task, world_config: WorldConfig) -> str:
+    """The parsed instruction, the demonstration path, and the world settings the world is drawn with (so that the
+    episode reads back the same under a server, or `gsmn export`, started with other settings)."""
+    return json.dumps({"instruction": asdict(task.instruction), "path": np.asarray(task.path).round(4).tolist(),
+                       "world": asdict(world_config)})
 
 
 def _result_dict(result: EpisodeResult | None) -> str | None:
@@ -143,7 +146,8 @@ class KeptStore(EpisodeStore):
         if row is None:
             return None
         task = json.loads(row["task"])
-        world = world_for_env(int(row["env_id"]), self.config.world)
+        world_config = WorldConfig(**task["world"]) if "world" in task else self.config.world
+        world = world_for_env(int(row["env_id"]), world_config)
         instruction = Instruction(**task["instruction"])
         episode = Episode(id=int(row["id"]), task=Task(world, instruction, np.array(task["path"], np.float64)),
                           policy=row["policy"], system=row["system"], checkpoint=row["checkpoint"],
@@ -265,7 +269,8 @@ class EpisodeKeeper(RunnerListener):
         self._started.add(episode.id)
         world = episode.task.world
         self.db.add_kept({"id": episode.id, "created": time.time(), "status": episode.status, "env_id": world.env_id,
-                          "split": world.split, "instruction": episode.instruction, "task": task_json(episode.task),
+                          "split": world.split, "instruction": episode.instruction,
+                          "task": task_json(episode.task, self.store.config.world),
                           "policy": episode.policy, "system": episode.system, "checkpoint": episode.checkpoint,
                           "horizon": episode.horizon})
 
