@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from app.fixtures import make_untrained_checkpoint
-from tests.test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS
+from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS
 
 
 @pytest.fixture(scope="module")
