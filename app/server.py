@@ -33,7 +33,9 @@ from app.api import make_api
 from app.commands import Conflict, RunnerError, ShowEnv
 from app.jobs import JobManager
 from app.jobs_view import JobsView
+from app.episodes_view import EpisodesView
 from app.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
+from app.presenter import Presenter
 from app.runner import Runner
 from app.viewer import Viewer
 from gsmn.config import RunConfig
@@ -149,6 +151,8 @@ class Dashboard:
         guard_viser(self.viser.get_port(), self.access)
         self.viewer = Viewer(self.viser, self.runner, env_id)
         self.jobs_view = JobsView(self.viewer, self.jobs)
+        self.presenter = Presenter(self.viewer)
+        self.episodes_view = EpisodesView(self.viewer, self.keeper, self.presenter)
         page_url = _url(host, self.viser.get_port())
         app = make_api(self.runner, page_url, self.jobs, self.keeper)
         app.add_middleware(AccessMiddleware, access=self.access)
@@ -176,6 +180,8 @@ class Dashboard:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
         unguard_viser(self.viser.get_port())
+        self.episodes_view.close()
+        self.presenter.close()
         self.jobs_view.close()
         self.viewer.close()
         self.runner.close()
