@@ -76,9 +76,7 @@ def row_label(row: dict) -> str:
     outcome = ("success" if result["success"] else "failure") if result else row["status"]
     when = datetime.fromtimestamp(row["created"]).strftime("%d %b %H:%M")
     pin = " · pinned" if row["pinned"] else ""
-    text = row["instruction"]
-    text = text if len(text) <= 44 else text[:43] + "…"
-    return f"#{row['id']} env {row['env_id']} · {outcome} · {row['steps']} steps · {when}{pin} · {text}"
+    return f"#{row['id']} · {outcome}{pin} · {row['instruction']} · env {row['env_id']} · {row['steps']} steps · {when}"
 
 
 class EpisodesView(RunnerListener):

@@ -65,12 +65,16 @@ def result_line(episode: Episode) -> str:
             f"goal, {r.final_side} side (asked {episode.task.instruction.side})")
 
 
-def step_layers(episode: Episode, t: int, heads: MapHeads | None) -> dict[str, np.ndarray]:
-    """The shown maps of step t as RGB images (one pixel per cell), north up; empty without maps."""
+def step_layers(episode: Episode, t: int, heads: MapHeads | None, legends: dict | None = None
+                ) -> dict[str, np.ndarray]:
+    """The shown maps of step t as RGB images (one pixel per cell), north up; empty without maps. `legends`, when
+    given, gets each map's legend (HTML)."""
     record = episode.steps[t]
     if record.maps is None or heads is None:
         return {}
     layers = map_layers(record.maps.maps, heads)
+    if legends is not None:
+        legends.update({name: layers[name].legend_html for name in SHOWN if name in layers})
     return {name: layers[name].rgb for name in SHOWN if name in layers}
 
 
@@ -127,7 +131,7 @@ def frame_image(episode: Episode, t: int, heads: MapHeads | None, map_px: int = 
 
 
 def gif_bytes(frames: list[np.ndarray]) -> bytes:
-    images = [Image.fromarray(f).quantize(colors=255, method=Image.Quantize.MEDIANCUT) for f in frames]
+    images = [Image.fromarray(f).quantize(colors=255, method=Image.Quantize.FASTOCTREE) for f in frames]
     out = io.BytesIO()
     images[0].save(out, format="GIF", save_all=True, append_images=images[1:], duration=1000 // STEPS_PER_SECOND,
                    loop=0, optimize=False, disposal=1)
@@ -225,7 +229,9 @@ function drawTop(t) {
   const X = x => x * k, Y = y => c.height - y * k;
   g.clearRect(0, 0, c.width, c.height);
   g.fillStyle = "#555"; g.font = "10px sans-serif";
-  for (const l of D.landmarks) { g.beginPath(); g.arc(X(l.x), Y(l.y), 3, 0, 7); g.fill(); g.fillText(l.name, X(l.x) + 4, Y(l.y) - 3); }
+  for (const l of D.landmarks) {
+    g.beginPath(); g.arc(X(l.x), Y(l.y), 3, 0, 7); g.fill(); g.fillText(l.name, X(l.x) + 4, Y(l.y) - 3);
+  }
   g.strokeStyle = "#d03030"; g.setLineDash([4, 3]); g.beginPath();
   D.path.forEach((p, i) => i ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))); g.stroke(); g.setLineDash([]);
   g.fillStyle = "#d03030"; g.beginPath(); g.arc(X(D.goal[0]), Y(D.goal[1]), 5, 0, 7); g.fill();
@@ -237,7 +243,8 @@ function drawTop(t) {
 function show(t) {
   const s = D.steps[t];
   slider.value = t; $("camera").src = "data:image/jpeg;base64," + s.camera;
-  for (const [name, img] of Object.entries(mapImgs)) img.src = s.maps[name] ? "data:image/png;base64," + s.maps[name] : "";
+  for (const [name, img] of Object.entries(mapImgs))
+    img.src = s.maps[name] ? "data:image/png;base64," + s.maps[name] : "";
   $("stepLabel").textContent = `Step ${t} of ${D.steps.length - 1}`;
   $("readout").textContent = `Flying ${s.v.toFixed(2)} m/s, turning ${s.omega.toFixed(2)} rad/s` +
     (s.stop_p === null ? "" : `, P(stop) ${s.stop_p.toFixed(2)}`) + (s.stop ? ": STOP" : "");

@@ -41,7 +41,7 @@ from gsmn.task.rollout import Task
 from gsmn.world.spec import world_for_env
 
 log = logging.getLogger("gsmn.dashboard")
-DEFAULT_LIMIT_MB = 2000.0  # about 3000 paper-preset episodes of 90 steps (docs/dashboard.md, "Kept episodes")
+DEFAULT_LIMIT_MB = 2000.0  # about 400 paper-preset episodes of about 100 steps (docs/dashboard.md, "Kept episodes")
 OUTCOMES = ("success", "failure", "cancelled", "failed", "live")
 
 

@@ -26,7 +26,8 @@ class Storage(BaseModel):
 
 
 class StorageRequest(Strict):
-    limit_mb: float = Field(..., ge=0.0, le=1e7, description="the retention limit in MB (10^6 bytes); 0 keeps only the pinned episodes")
+    limit_mb: float = Field(..., ge=0.0, le=1e7, description="the retention limit in MB (10^6 bytes); 0 keeps "
+                            "only the pinned episodes")
 
 
 def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
@@ -34,7 +35,7 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
 
     store, db = keeper.store, keeper.db
 
-    @app.get("/api/episodes", response_model=list[EpisodeSummary], responses=responses(422),
+    @app.get("/api/episodes", response_model=list[EpisodeSummary], responses=responses(422, 503),
              summary="Episodes flown in the page or over the API, kept in the record across restarts, searched")
     def list_episodes(
             env_id: Annotated[int | None, Query(ge=0, le=2**31 - 1, description="the environment")] = None,
@@ -88,13 +89,13 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
         db.update_kept(episode_id, pinned=int(pinned))
         return EpisodeSummary(**row_summary(db.kept(episode_id)))
 
-    @app.put("/api/episodes/{episode_id}/pin", response_model=EpisodeSummary, responses=responses(404, 409, 422),
+    @app.put("/api/episodes/{episode_id}/pin", response_model=EpisodeSummary, responses=responses(404, 409, 422, 503),
              summary="Pin an episode: the retention limit never removes it")
     def pin(episode_id: EpisodeId) -> EpisodeSummary:
         return set_pin(episode_id, True)
 
     @app.delete("/api/episodes/{episode_id}/pin", response_model=EpisodeSummary,
-                responses=responses(404, 409, 422), summary="Unpin an episode")
+                responses=responses(404, 409, 422, 503), summary="Unpin an episode")
     def unpin(episode_id: EpisodeId) -> EpisodeSummary:
         return set_pin(episode_id, False)
 
@@ -104,11 +105,12 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
         return Storage(episodes=counts["episodes"], pinned=counts["pinned"], bytes=db.kept_bytes(),
                        limit_bytes=keeper.limit_bytes, removed=list(keeper.removed))
 
-    @app.get("/api/storage", response_model=Storage, summary="Space the kept episodes take, and the retention limit")
+    @app.get("/api/storage", response_model=Storage, responses=responses(503),
+             summary="Space the kept episodes take, and the retention limit")
     def get_storage() -> Storage:
         return storage()
 
-    @app.put("/api/storage", response_model=Storage, responses=responses(422),
+    @app.put("/api/storage", response_model=Storage, responses=responses(400, 422, 503),
              summary="Set the retention limit; episodes past it are removed at once, oldest unpinned first")
     def put_storage(request: StorageRequest) -> Storage:
         keeper.set_limit(int(request.limit_mb * 1e6))
@@ -116,7 +118,7 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
 
     @app.get("/api/episodes/{episode_id}/export", response_class=Response,
              responses={200: {"content": {"text/html": {}, "image/gif": {}, "video/mp4": {}}},
-                        **responses(404, 409, 422)},
+                        **responses(404, 409, 422, 503)},
              summary="The episode as one self-contained HTML page that plays it back with no server, or as a GIF "
                      "or MP4 of the camera beside the maps with the step, instruction and result written on it")
     def export(episode_id: EpisodeId, format: Annotated[Literal["html", "gif", "mp4"], Query(

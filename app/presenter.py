@@ -4,9 +4,9 @@ projector. A "Presenter mode" box at the top of the controls (or `?presenter=1` 
 - larger text everywhere (the page's root font size, which every viser control is sized from);
 - a card at the top of the controls with the instruction and the result in large type, the step, what the drone
   sees, and the three maps labelled in plain words ("where it thinks the goal is"), the drone and the goal marked;
-- the developer controls hidden: the environment id, split, policy and mirror choices, speed, "follow", the
-  counterfactual and ground-layer folders, and the right-hand panel of developer panels (its camera and maps are
-  in the card). Run, the instruction, the playback controls and the timeline stay.
+- the developer controls hidden: the page's title and introduction, the environment id, split, policy and mirror
+  choices, speed, "follow", the counterfactual and ground-layer folders, and the right-hand panel of developer
+  panels (its camera and maps are in the card). Run, the instruction, the playback controls and the timeline stay.
 
 Turning it off shows everything as it was. Like the rest of the page's state, the mode is the page's shared one:
 every open tab shows it.
@@ -25,9 +25,9 @@ import viser
 from viser._gui_handles import GuiFolderHandle
 
 from app.colors import png_bytes, upscale
+from app.export import heads_for as _heads_for
 from app.export import result_line, step_layers
 from app.panels import cell_marks_html
-from app.export import heads_for as _heads_for
 
 log = logging.getLogger("gsmn.dashboard")
 HIDDEN = ("checkpoint_note", "env_number", "split", "env_buttons", "policy", "mirror", "follow", "speed")
@@ -65,6 +65,12 @@ class Presenter:
         handles = list(self.server.gui._container_handle_from_uuid.values())
         return [h for h in handles if isinstance(h, GuiFolderHandle) and h.label.startswith(HIDDEN_FOLDERS)]
 
+    def _intro(self) -> list:
+        """The page's title and introduction (the card's instruction replaces them)."""
+        root = self.server.gui._container_handle_from_uuid.get("root")
+        children = list(getattr(root, "_children", {}).values())
+        return [h for h in children if str(getattr(h, "content", "")).startswith("## GSMN dashboard")]
+
     def set(self, on: bool) -> None:
         """Presenter mode on or off, for every tab."""
         self.on = on
@@ -74,8 +80,8 @@ class Presenter:
         with self.server.atomic():
             for name in HIDDEN:
                 getattr(v, name).visible = not on
-            for folder in self._folders():
-                folder.visible = not on
+            for handle in (*self._folders(), *self._intro()):
+                handle.visible = not on
             v.panel.visible = not on
             self.style.content = STYLE if on else ""
             self.card.visible = on
@@ -127,7 +133,8 @@ def card_html(episode, t: int, heads, cell_of=None) -> str:
         verdict = (f"<div class='gsmn-presenter-result' style='font-size:1.15rem;color:#555'>"
                    f"{'Flying…' if episode.live else html.escape(episode.status)}</div>")
     record, instruction = episode.steps[t], episode.task.instruction
-    maps = step_layers(episode, t, heads)
+    legends: dict[str, str] = {}
+    maps = step_layers(episode, t, heads, legends)
     cells = {}
     for name, rgb in maps.items():
         marks = ""
@@ -137,7 +144,8 @@ def card_html(episode, t: int, heads, cell_of=None) -> str:
         image = _img(png_bytes(upscale(rgb, max(1, 200 // rgb.shape[0]))), "image/png",
                      "width:100%;display:block;image-rendering:pixelated", f"data-layer='{name}'")
         cells[name] = (f"<div><div style='{LABEL}'>{html.escape(PRESENTER_TITLES[name])}</div>"
-                       f"<div style='position:relative;border-radius:4px;overflow:hidden'>{image}{marks}</div></div>")
+                       f"<div style='position:relative;border-radius:4px;overflow:hidden'>{image}{marks}</div>"
+                       + (legends.get("semantic", "") if name == "semantic" else "") + "</div>")
     camera = _img(record.camera_jpeg, "image/jpeg", "width:100%;display:block;border-radius:4px")
     key = ("<div style='font-size:0.75rem;line-height:1.35;color:#333;align-self:center'>Yellow: likely; dark blue: "
            "unlikely. White square: the drone; red square: the goal. Maps seen from above, north up.</div>")

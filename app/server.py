@@ -31,9 +31,9 @@ from app.access import (
 )
 from app.api import make_api
 from app.commands import Conflict, RunnerError, ShowEnv
+from app.episodes_view import EpisodesView
 from app.jobs import JobManager
 from app.jobs_view import JobsView
-from app.episodes_view import EpisodesView
 from app.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
 from app.presenter import Presenter
 from app.runner import Runner
@@ -120,7 +120,8 @@ class Dashboard:
                  checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1,
                  data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1,
                  token: str | None = None, keep_mb: float | None = None):
-        """`keep_mb`: the retention limit of kept episodes (app.kept; None: its default). `token`: the token requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
+        """`keep_mb`: the retention limit of kept episodes (app.kept; None: its default). `token`: the token
+        requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
         is not loopback)."""
         import torch
 

@@ -13,9 +13,9 @@ import httpx
 import playwright.sync_api as playwright_api
 import pytest
 from PIL import Image
+from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS
 
 from app.fixtures import make_untrained_checkpoint
-from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS
 
 
 @pytest.fixture(scope="module")
