@@ -298,11 +298,13 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         if layer not in LAYERS:
             raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS)}")
         record = step_of(e, step)
-        model = runner.models.get(e.checkpoint) if e.checkpoint else None
-        if record.maps is None or model is None:
+        from app.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
+
+        heads = heads_for(runner, e)
+        if record.maps is None or heads is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
-        layers = map_layers(m.maps, model.heads)
+        layers = map_layers(m.maps, heads)
         if layer not in layers:
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")

@@ -32,6 +32,7 @@ ROWS = 12
 LINK_FIELD = "gsmn-link"
 OUTCOME_CHOICES = {"any outcome": None, "success": "success", "failure": "failure", "cancelled": "cancelled",
                    "failed": "failed"}
+WHEN_CHOICES = {"any time": None, "last hour": 3600.0, "last 24 hours": 86400.0, "last 7 days": 7 * 86400.0}
 POLICY_CHOICES = {"any policy": None, "model": "model", "mirror ensemble": "mirror", "expert": "expert"}
 
 # the script that tells the server this tab's URL: it finds the hidden field, hides its row, and types
@@ -122,13 +123,14 @@ class EpisodesView(RunnerListener):
             self.search_env = gui.add_text("Environment", "", hint="an environment id, or empty for any")
             self.search_outcome = gui.add_dropdown("Outcome", tuple(OUTCOME_CHOICES))
             self.search_policy = gui.add_dropdown("Policy", tuple(POLICY_CHOICES))
+            self.search_when = gui.add_dropdown("Flown", tuple(WHEN_CHOICES))
             self.search_pinned = gui.add_checkbox("Pinned only", False)
             self.search_button = gui.add_button("Search", icon=viser.Icon.SEARCH)
             self.list_note = gui.add_markdown("")
             self.row_buttons = [gui.add_button(f"row {k}", visible=False) for k in range(ROWS)]
             self.storage = gui.add_markdown("")
         self.search_button.on_click(lambda _: self.refresh())
-        for control in (self.search_outcome, self.search_policy, self.search_pinned):
+        for control in (self.search_outcome, self.search_policy, self.search_when, self.search_pinned):
             control.on_update(lambda _: self.refresh())
         for k, button in enumerate(self.row_buttons):
             button.on_click(lambda event, k=k: self._open_row(k, event.client))
@@ -142,11 +144,13 @@ class EpisodesView(RunnerListener):
                 self.list_note.content = error_html("The environment is a number (e.g. 70), or empty for any.")
                 return
             self.keeper.flush(2.0)
+            within = WHEN_CHOICES[self.search_when.value]
             rows = search(self.db, env_id=int(env_text) if env_text else None,
                           instruction=self.search_text.value.strip() or None,
                           policy=POLICY_CHOICES[self.search_policy.value],
                           outcome=OUTCOME_CHOICES[self.search_outcome.value],
-                          pinned=True if self.search_pinned.value else None, limit=ROWS + 1)
+                          pinned=True if self.search_pinned.value else None,
+                          since=time.time() - within if within else None, limit=ROWS + 1)
         except Exception as e:  # noqa: BLE001 - a record that cannot be read is said, not raised into viser
             self.list_note.content = error_html(f"Cannot read the record: {html.escape(str(e))}")
             return

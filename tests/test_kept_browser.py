@@ -129,6 +129,18 @@ def test_the_episodes_tab_lists_kept_episodes_and_replays_one(dashboard, browser
     page.get_by_role("button", name="Search").click()
     page.get_by_text("1 episode kept").first.wait_for()
     assert not row.is_visible()
+    # and by when it flew: the first, dated two days back, is left out of the last 24 hours (the test before
+    # removed the second)
+    dashboard.keeper.db.update_kept(first, created=time.time() - 2 * 86400)
+    field(page, "Environment").fill("")
+    field(page, "Environment").press("Enter")
+    page.get_by_role("button", name="Search").click()
+    page.get_by_text("2 episodes kept").first.wait_for()
+    dashboard.episodes_view.search_when.value = "last 24 hours"
+    page.get_by_role("button", name="Search").click()
+    page.get_by_text("1 episode kept").first.wait_for()
+    assert not row.is_visible()
+    dashboard.episodes_view.search_when.value = "any time"
     page.close()
 
 
