@@ -188,6 +188,7 @@ class EpisodeKeeper(RunnerListener):
         self._queue: queue.Queue = queue.Queue()
         self._started: set[int] = set()
         self.removed: list[int] = []  # ids removed by the retention limit, oldest first
+        self._retention = threading.Lock()  # the writer (after an episode) and the API (a new limit) both apply it
         self._settle_interrupted()
         self.apply_retention()
         self.thread = threading.Thread(target=self._loop, name="gsmn-keeper", daemon=True)
@@ -291,6 +292,10 @@ class EpisodeKeeper(RunnerListener):
 
     def apply_retention(self) -> list[int]:
         """Remove the oldest unpinned, not flying episodes while the kept bytes exceed the limit; the ids removed."""
+        with self._retention:
+            return self._apply_retention()
+
+    def _apply_retention(self) -> list[int]:
         removed = []
         total = self.db.kept_bytes()
         live = self._live()
