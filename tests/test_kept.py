@@ -202,3 +202,38 @@ def test_an_older_record_gains_the_tables_and_keeps_its_rows(tmp_path):
     assert db.next_kept_id() == 1 and db.kept_bytes() == 0 and db.kept_counts() == {"episodes": 0, "pinned": 0}
     assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION == 4
     db.close()
+
+
+def test_search_filters_on_hand_made_rows(tmp_path):
+    import json
+
+    from app.db import Database
+    from app.kept import search
+
+    db = Database(tmp_path / "gsmn.sqlite")
+    task = json.dumps({"instruction": {"noun_phrase": "box", "side": "left", "goal_x": 1.0, "goal_y": 2.0}})
+    rows = [  # id, env, instruction, policy, status, success, created, pinned
+        (1, 70, "go to the left side of the box", "model", "finished", 1, 100.0, 0),
+        (2, 71, "go to the back side of the barrel", "expert", "finished", 0, 200.0, 1),
+        (3, 70, "go to the 100% side_of it", "mirror", "failed", None, 300.0, 0),
+        (4, 72, "go to the front side of the box", "model", "cancelled", None, 400.0, 0)]
+    for i, env, text, policy, status, success, created, pinned in rows:
+        db.add_kept({"id": i, "created": created, "status": status, "env_id": env, "split": "test",
+                     "instruction": text, "task": task, "policy": policy, "system": "gsmn", "checkpoint": None,
+                     "horizon": 10, "success": success, "pinned": pinned})
+
+    def ids(**kw):
+        return [int(r["id"]) for r in search(db, **kw)]
+
+    assert ids() == [4, 3, 2, 1] and ids(newest_first=False) == [1, 2, 3, 4]
+    assert ids(env_id=70) == [3, 1] and ids(instruction="BOX") == [4, 1] and ids(policy="expert") == [2]
+    assert ids(outcome="success") == [1] and ids(outcome="failure") == [2] and ids(outcome="failed") == [3]
+    assert ids(outcome="cancelled") == [4] and ids(pinned=True) == [2] and ids(since=200, until=300) == [3, 2]
+    assert ids(instruction="100%") == [3] and ids(instruction="e_o") == [3]  # LIKE's wildcards taken literally
+    assert ids(instruction="%") == [3] and ids(limit=2, offset=1) == [3, 2]
+    with pytest.raises(ValueError, match="outcome must be one of"):
+        search(db, outcome="won")
+    assert db.next_kept_id() == 5
+    db.remove_kept(4)
+    assert db.next_kept_id() == 5  # never reused
+    db.close()
