@@ -109,7 +109,8 @@ class EpisodesView(RunnerListener):
         self.link_field = gui.add_text(LINK_FIELD, "")
         self.link_reader = gui.add_html(READ_LINK)
         self.link_field.on_update(self._on_link)
-        with gui.add_folder("Share this step"):
+        after = getattr(self.viewer, "result", None)  # right under the result, above the counterfactual
+        with gui.add_folder("Share this step", order=after.order + 0.01 if after is not None else None):
             self.share = gui.add_html(link_html(None))
             self.pin_box = gui.add_checkbox("Pinned", False, hint="a pinned episode is never removed by the retention "
                                             "limit")
