@@ -92,6 +92,9 @@ class EpisodeSummary(BaseModel):
     steps_per_second: float | None
     result: ResultModel | None
     error: str | None
+    pinned: bool = Field(False, description="kept whatever the retention limit (PUT /api/episodes/{id}/pin)")
+    created: float | None = Field(None, description="unix time it was queued or started flying")
+    bytes: int | None = Field(None, description="what its steps take in the record (null: not written yet)")
 
 
 class ModelStep(BaseModel):
@@ -174,11 +177,12 @@ def summary(e: Episode) -> EpisodeSummary:
                           instruction=i.text, landmark=i.noun_phrase, side=i.side, goal_x=i.goal_x, goal_y=i.goal_y,
                           policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
-                          error=e.error)
+                          error=e.error, created=e.created)
 
 
-def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAPI:
-    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs."""
+def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=None) -> FastAPI:
+    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs; with
+    `keeper` (app.kept.EpisodeKeeper) every episode kept in the record: searched, pinned, exported."""
     app = FastAPI(title="GSMN dashboard API", version="1.0",
                   description="Fly instructions with GSMN (Blukis et al., RSS 2018) on the MuJoCo quadcopter, read "
                               "episodes step by step, and ground counterfactual instructions on a semantic map "
@@ -220,7 +224,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
     def episode_or_404(episode_id: int) -> Episode:
         episode = runner.episodes.get(episode_id)
         if episode is None:
-            raise NotFound(f"no episode {episode_id} (episodes are kept in memory, the oldest dropped)")
+            raise NotFound(runner.episodes.missing(episode_id))
         return episode
 
     @app.get("/api/health", response_model=Health, summary="Is the server up, and is a model loaded")
@@ -240,14 +244,22 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
                         COMMAND_TIMEOUT)
         return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction, policy=e.policy)
 
-    @app.get("/api/episodes", response_model=list[EpisodeSummary], summary="Episodes kept in memory, oldest first")
-    def list_episodes() -> list[EpisodeSummary]:
-        return [summary(e) for e in runner.episodes.all()]
+    if keeper is not None:
+        from app.kept_api import add_kept_routes
+
+        add_kept_routes(app, runner, keeper, summary)
+    else:
+        @app.get("/api/episodes", response_model=list[EpisodeSummary], summary="Episodes kept in memory, oldest "
+                 "first")
+        def list_episodes() -> list[EpisodeSummary]:
+            return [summary(e) for e in runner.episodes.all()]
 
     @app.get("/api/episodes/{episode_id}", response_model=EpisodeSummary, responses=responses(404, 422),
              summary="Status, steps and result")
     def get_episode(episode_id: EpisodeId) -> EpisodeSummary:
-        return summary(episode_or_404(episode_id))
+        e = episode_or_404(episode_id)
+        pinned = getattr(runner.episodes, "pinned", None)  # app.kept.KeptStore
+        return summary(e).model_copy(update={"pinned": pinned(e.id)}) if pinned else summary(e)
 
     @app.delete("/api/episodes/{episode_id}", response_model=EpisodeSummary,
                 responses=responses(404, 409, 422, 503), summary="Cancel an episode: drop it from the queue, or end "
@@ -286,11 +298,13 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         if layer not in LAYERS:
             raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS)}")
         record = step_of(e, step)
-        model = runner.models.get(e.checkpoint) if e.checkpoint else None
-        if record.maps is None or model is None:
+        from app.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
+
+        heads = heads_for(runner, e)
+        if record.maps is None or heads is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
-        layers = map_layers(m.maps, model.heads)
+        layers = map_layers(m.maps, heads)
         if layer not in layers:
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")

@@ -26,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(SQLite database gsmn.sqlite and one folder per job); kept across restarts")
     p.add_argument("--max-runs", type=int, default=1, help="fine-tuning runs at a time; more are refused")
     p.add_argument("--max-evaluations", type=int, default=1, help="evaluations at a time; more are refused")
+    p.add_argument("--keep-mb", type=float, default=None, help="disk space for the episodes kept (every episode "
+                   "flown in the page or over the API); past it the oldest unpinned ones are removed (default: 2000)")
     add_config_arguments(p)
     p.set_defaults(func=cmd_serve)
 
@@ -39,7 +41,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         dashboard = Dashboard(config, checkpoint=args.checkpoint, host=args.host, port=args.port,
                               api_port=args.api_port, env_id=args.env_id, data_dir=args.data_dir,
-                              max_runs=args.max_runs, max_evaluations=args.max_evaluations, token=args.token)
+                              max_runs=args.max_runs, max_evaluations=args.max_evaluations, token=args.token,
+                              keep_mb=args.keep_mb)
     except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
         print(f"gsmn serve: error: {e}", file=sys.stderr)
         return 2
@@ -59,3 +62,59 @@ def cmd_serve(args: argparse.Namespace) -> int:
     finally:
         dashboard.close()
     return 0
+
+
+def register_export(subparsers: argparse._SubParsersAction) -> None:
+    """Add `export` to the `gsmn` subcommands."""
+    p = subparsers.add_parser("export", help="export an episode the dashboard kept: a self-contained HTML page that "
+                              "plays it back with no server, or a GIF/MP4 of the camera beside the maps")
+    p.add_argument("episode_id", type=int, help="the episode's id (the page's episode list, GET /api/episodes)")
+    p.add_argument("--data-dir", default="data/dashboard", help="the dashboard's data folder (gsmn serve --data-dir)")
+    p.add_argument("--format", choices=("html", "gif", "mp4"), default="html")
+    p.add_argument("--out", default=None, help="the file to write (default: episode-ID.FORMAT)")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from app.db import Database, RecordError
+    from app.export import export_episode, heads_for
+    from app.kept import KeptStore
+
+    record = Path(args.data_dir) / "gsmn.sqlite"
+    if not record.is_file():
+        print(f"gsmn export: error: no dashboard record at {record} (give the folder of gsmn serve --data-dir)",
+              file=sys.stderr)
+        return 2
+    try:
+        db = Database(record)
+    except (RecordError, RuntimeError) as e:
+        print(f"gsmn export: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        store = KeptStore(db, config_from_args(args))
+        episode = store.load(args.episode_id)
+        if episode is None:
+            print(f"gsmn export: error: {store.missing(args.episode_id)}", file=sys.stderr)
+            return 1
+        if not episode.steps:
+            print(f"gsmn export: error: episode {args.episode_id} has no steps", file=sys.stderr)
+            return 1
+
+        class _NoModels:  # heads_for reads the episode's checkpoint folder when no runner holds its model
+            models: dict = {}
+
+        try:
+            data = export_episode(episode, args.format, heads_for(_NoModels(), episode))
+        except ValueError as e:
+            print(f"gsmn export: error: {e}", file=sys.stderr)
+            return 2
+        out = Path(args.out or f"episode-{args.episode_id}.{args.format}")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+        print(f"{out}: episode {episode.id}, {len(episode.steps)} steps, {len(data) / 1e6:.2f} MB")
+        return 0
+    finally:
+        db.close()

@@ -27,8 +27,10 @@ from app.commands import RunnerError
 QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
 ACTIVE = (QUEUED, RUNNING)
 STATUSES = (QUEUED, RUNNING, FINISHED, FAILED, CANCELLED)
-SCHEMA_VERSION = 3  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
-# record gains the columns on opening: 0 for mirror_ensemble, NULL, "not known", for the region)
+SCHEMA_VERSION = 4  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
+# record gains the columns on opening: 0 for mirror_ensemble, NULL, "not known", for the region); 4: the tables
+# kept_episodes and kept_steps (every episode flown in the page or over the API, app.kept; an older record gains
+# them empty)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -96,6 +98,35 @@ CREATE TABLE IF NOT EXISTS runs (
     cancel_requested INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS episodes_by_evaluation ON episodes (evaluation_id, position);
+CREATE TABLE IF NOT EXISTS kept_episodes (  -- an episode flown in the page or over the API (app.kept)
+    id INTEGER PRIMARY KEY AUTOINCREMENT,  -- the runner's episode id: never reused, also after a removal
+    created REAL NOT NULL,          -- unix time it started flying
+    finished REAL,
+    status TEXT NOT NULL,           -- running, paused, finished, cancelled, failed
+    env_id INTEGER NOT NULL,
+    split TEXT NOT NULL,
+    instruction TEXT NOT NULL,
+    task TEXT NOT NULL,             -- JSON: the parsed instruction and the demonstration path
+    policy TEXT NOT NULL,
+    system TEXT NOT NULL,
+    checkpoint TEXT,
+    horizon INTEGER NOT NULL,
+    steps INTEGER NOT NULL DEFAULT 0,
+    success INTEGER,                -- NULL until it finishes
+    result TEXT,                    -- JSON: app.recording.EpisodeResult
+    error TEXT,
+    pinned INTEGER NOT NULL DEFAULT 0,
+    bytes INTEGER NOT NULL DEFAULT 0  -- the stored size of its steps (camera JPEGs, quantised maps, numbers)
+);
+CREATE TABLE IF NOT EXISTS kept_steps (
+    episode_id INTEGER NOT NULL,
+    step INTEGER NOT NULL,
+    data TEXT NOT NULL,             -- JSON: pose, actions, P(stop), T_world_camera, the model's own action
+    camera BLOB NOT NULL,           -- JPEG
+    maps BLOB,                      -- the model's maps, quantised to 8 bits per channel (app.kept.pack_maps)
+    PRIMARY KEY (episode_id, step)
+);
+CREATE INDEX IF NOT EXISTS kept_by_created ON kept_episodes (created);
 """
 
 
@@ -363,3 +394,63 @@ class Database:
         else:
             rows = self._all("SELECT * FROM runs ORDER BY id")
         return [_decode(Run, r) for r in rows]
+
+    # -- kept episodes (app.kept) ------------------------------------------------------------------------------
+    def next_kept_id(self) -> int:
+        """The first episode id never given: ids are not reused after a removal (AUTOINCREMENT's sequence)."""
+        rows = self._all("SELECT seq FROM sqlite_sequence WHERE name = 'kept_episodes'")
+        return int(rows[0]["seq"]) + 1 if rows else 1
+
+    def add_kept(self, values: dict[str, Any]) -> None:
+        """Insert or replace a kept episode's row (`values` by column; JSON columns already encoded)."""
+        self._insert("kept_episodes", values, replace=True)
+
+    def update_kept(self, episode_id: int, **values: Any) -> None:
+        sets = ", ".join(f"{k} = ?" for k in values)
+        self._execute(f"UPDATE kept_episodes SET {sets} WHERE id = ?", (*values.values(), episode_id))
+
+    def add_kept_steps(self, episode_id: int, steps: list[tuple[int, str, bytes, bytes | None]], size: int) -> None:
+        """Steps (step, data JSON, camera JPEG, packed maps) of one episode, and their size added to its bytes, in
+        one transaction: a server killed meanwhile leaves the record as before them."""
+        with self._lock, self._errors("write"):
+            self._db.execute("BEGIN")
+            try:
+                self._db.executemany("INSERT OR REPLACE INTO kept_steps (episode_id, step, data, camera, maps) "
+                                     "VALUES (?, ?, ?, ?, ?)", [(episode_id, *s) for s in steps])
+                self._db.execute("UPDATE kept_episodes SET steps = (SELECT count(*) FROM kept_steps WHERE "
+                                 "episode_id = ?), bytes = bytes + ? WHERE id = ?", (episode_id, size, episode_id))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def kept(self, episode_id: int) -> sqlite3.Row | None:
+        rows = self._all("SELECT * FROM kept_episodes WHERE id = ?", (episode_id,))
+        return rows[0] if rows else None
+
+    def kept_steps(self, episode_id: int) -> list[sqlite3.Row]:
+        return self._all("SELECT * FROM kept_steps WHERE episode_id = ? ORDER BY step", (episode_id,))
+
+    def search_kept(self, where: list[str], params: list[Any], newest_first: bool, limit: int,
+                    offset: int) -> list[sqlite3.Row]:
+        sql = "SELECT * FROM kept_episodes" + (f" WHERE {' AND '.join(where)}" if where else "")
+        sql += f" ORDER BY id {'DESC' if newest_first else 'ASC'} LIMIT ? OFFSET ?"
+        return self._all(sql, (*params, limit, offset))
+
+    def kept_counts(self) -> dict[str, int]:
+        row = self._all("SELECT count(*) AS n, coalesce(sum(pinned), 0) AS p FROM kept_episodes")[0]
+        return {"episodes": int(row["n"]), "pinned": int(row["p"])}
+
+    def kept_bytes(self) -> int:
+        return int(self._all("SELECT coalesce(sum(bytes), 0) AS b FROM kept_episodes")[0]["b"])
+
+    def remove_kept(self, episode_id: int) -> None:
+        with self._lock, self._errors("write"):
+            self._db.execute("BEGIN")
+            try:
+                self._db.execute("DELETE FROM kept_steps WHERE episode_id = ?", (episode_id,))
+                self._db.execute("DELETE FROM kept_episodes WHERE id = ?", (episode_id,))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise

@@ -172,6 +172,12 @@ class EpisodeStore:
         with self._lock:
             return self._episodes.get(episode_id)
 
+    def missing(self, episode_id: int) -> str:
+        """Why `get(episode_id)` found nothing, for the 404."""
+        if episode_id >= self._next_id:
+            return f"no episode {episode_id}: none has that id yet"
+        return f"no episode {episode_id} (episodes are kept in memory, the oldest dropped)"
+
     def all(self) -> list[Episode]:
         with self._lock:
             return list(self._episodes.values())

@@ -125,13 +125,14 @@ class Runner:
     `checkpoints_root`; `require_checkpoint` makes a missing one an error instead of a message."""
 
     def __init__(self, config: RunConfig, checkpoint: str | Path | None = "gsmn", require_checkpoint: bool = False,
-                 checkpoints_root: str | Path = "checkpoints", max_episodes: int = 16, max_queued: int = MAX_QUEUED):
+                 checkpoints_root: str | Path = "checkpoints", max_episodes: int = 16, max_queued: int = MAX_QUEUED,
+                 episodes: EpisodeStore | None = None):
         self.config = config
         self.max_queued = max_queued
         self.checkpoints_root = Path(checkpoints_root)
         self.default_ref = str(checkpoint) if checkpoint is not None else None
         self.require_checkpoint = require_checkpoint
-        self.episodes = EpisodeStore(max_episodes)
+        self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)  # app.kept.KeptStore
         self.listeners: list[RunnerListener] = []
         self.models: dict[str, LoadedModel] = {}  # by resolved path
         self.extra_checkpoints: Callable[[], dict[str, Path]] | None = None  # e.g. fine-tuning runs', by name
@@ -449,7 +450,7 @@ class Runner:
         """Drop a queued episode, or end the live one."""
         episode = self.episodes.get(c.episode_id)
         if episode is None:
-            raise NotFound(f"no episode {c.episode_id} (episodes are kept in memory, the oldest dropped)")
+            raise NotFound(self.episodes.missing(c.episode_id))
         if episode in self._pending:
             self._pending.remove(episode)
             episode.status = CANCELLED
@@ -469,7 +470,7 @@ class Runner:
     def _do_Ground(self, c: Ground) -> Grounding:
         episode = self.episodes.get(c.episode_id)
         if episode is None:
-            raise NotFound(f"no episode {c.episode_id} (episodes are kept in memory, the oldest dropped)")
+            raise NotFound(self.episodes.missing(c.episode_id))
         if episode.checkpoint is None or episode.checkpoint not in self.models:
             raise Conflict(f"episode {c.episode_id} has no semantic map: no model watched it")
         n = len(episode.steps)

@@ -31,8 +31,11 @@ from app.access import (
 )
 from app.api import make_api
 from app.commands import Conflict, RunnerError, ShowEnv
+from app.episodes_view import EpisodesView
 from app.jobs import JobManager
 from app.jobs_view import JobsView
+from app.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
+from app.presenter import Presenter
 from app.runner import Runner
 from app.viewer import Viewer
 from gsmn.config import RunConfig
@@ -116,8 +119,9 @@ class Dashboard:
                  port: int = 8080, api_port: int = 8000, env_id: int = 70,
                  checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1,
                  data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1,
-                 token: str | None = None):
-        """`token`: the token requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
+                 token: str | None = None, keep_mb: float | None = None):
+        """`keep_mb`: the retention limit of kept episodes (app.kept; None: its default). `token`: the token
+        requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
         is not loopback)."""
         import torch
 
@@ -127,13 +131,17 @@ class Dashboard:
         # the record first: a damaged or empty one is refused (naming it) before the simulator starts
         self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
                                max_evaluations=max_evaluations)
+        self.kept = KeptStore(self.jobs.db, config, max_episodes)  # every episode flown, in the record
         try:
             self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,
                                  require_checkpoint=checkpoint is not None, checkpoints_root=checkpoints_root,
-                                 max_episodes=max_episodes).start()
+                                 max_episodes=max_episodes, episodes=self.kept).start()
         except BaseException:
             self.jobs.close()
             raise
+        self.keeper = EpisodeKeeper(self.kept, int((DEFAULT_LIMIT_MB if keep_mb is None else keep_mb) * 1e6),
+                                    live=lambda: self.runner.live.id if self.runner.live else None)
+        self.runner.listeners.append(self.keeper)
         self.runner.extra_checkpoints = self.jobs.checkpoints
         token = resolve_token(token, host)
         api_socket = bind_socket(host, api_port)  # first: the checks of both servers need both ports
@@ -144,8 +152,10 @@ class Dashboard:
         guard_viser(self.viser.get_port(), self.access)
         self.viewer = Viewer(self.viser, self.runner, env_id)
         self.jobs_view = JobsView(self.viewer, self.jobs)
+        self.presenter = Presenter(self.viewer)
+        self.episodes_view = EpisodesView(self.viewer, self.keeper, self.presenter)
         page_url = _url(host, self.viser.get_port())
-        app = make_api(self.runner, page_url, self.jobs)
+        app = make_api(self.runner, page_url, self.jobs, self.keeper)
         app.add_middleware(AccessMiddleware, access=self.access)
         self.api = ApiServer(app, host, api_port, bound=api_socket)
         self.api.wait_started()
@@ -171,10 +181,13 @@ class Dashboard:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
         unguard_viser(self.viser.get_port())
+        self.episodes_view.close()
+        self.presenter.close()
         self.jobs_view.close()
         self.viewer.close()
-        self.jobs.close()
         self.runner.close()
+        self.keeper.close()
+        self.jobs.close()
         with contextlib.redirect_stdout(io.StringIO()):
             self.viser.stop()
 

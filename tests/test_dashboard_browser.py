@@ -33,7 +33,8 @@ def dashboard(tmp_path_factory):
 
     folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
     d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
-                  api_port=0, checkpoints_root=tmp_path_factory.mktemp("empty"))
+                  api_port=0, checkpoints_root=tmp_path_factory.mktemp("empty"),
+                  data_dir=tmp_path_factory.mktemp("data"))  # the episodes it flies are kept there
     yield d
     d.close()
 

@@ -116,7 +116,7 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     db.close()
     db = Database(path)
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 3
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 4
     db.close()
 
 
