@@ -290,7 +290,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
         if record.maps is None or model is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
-        layers = map_layers(m.maps, model.heads)
+        layers = map_layers(m.maps, model.heads, world_names=tuple(lm.noun_phrase for lm in e.task.world.landmarks))
         if layer not in layers:
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")

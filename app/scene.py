@@ -28,8 +28,11 @@ LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other
 OTHER_LAYER_HEIGHT = 0.02
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
-# The 3D view's first camera: over the field from beyond its south-west corner (viser's vertical field of view).
-DEFAULT_CAMERA = {"position": (0.0, -13.0, 23.0), "look_at": (15.0, 13.5, 0.0), "up": (0.0, 0.0, 1.0),
+# The 3D view's first camera: over the field from beyond the middle of its south edge (viser's vertical field of
+# view), so that all four corners, where episodes start, fit a canvas down to 0.64 wide per unit of height (1280 x
+# 800 between the side panels) with the drone's frustum; from beyond the south-west corner the south-east start
+# corner and the drone were cut off at the right edge.
+DEFAULT_CAMERA = {"position": (15.0, -16.0, 32.0), "look_at": (15.0, 12.0, 0.0), "up": (0.0, 0.0, 1.0),
                   "fov": math.radians(75.0)}
 LABEL_GAP = 0.6  # m from a landmark's top to its label
 LABEL_STEP = 0.5  # m a label rises at a time to clear another
@@ -145,13 +148,23 @@ def _fan(centre: np.ndarray, rx: float, ry: float, start: float, end: float, n: 
     return verts, faces
 
 
-def quadrant_angles(world: WorldSpec, instruction: Instruction) -> tuple[float, float]:
-    """The success quadrant of an instruction around its landmark as (start, end) angles, counter-clockwise
-    (gsmn.task.metrics.side_of: back around d = landmark - start, front around -d, left counter-clockwise)."""
-    lm = world.landmarks[instruction.landmark_index]
+SIDE_TURN = {"back": 0.0, "front": math.pi, "left": math.pi / 2, "right": -math.pi / 2}
+SIDES_RGB = {"left": (80, 150, 230), "right": (230, 120, 60), "front": (200, 200, 80), "back": (170, 90, 200)}
+SIDE_PARTS = ("from_start", *(f"{side}{part}" for side in SIDE_TURN for part in ("", "_label")))
+
+
+def side_angles(world: WorldSpec, landmark_index: int, side: str) -> tuple[float, float]:
+    """One side's quadrant around a landmark as (start, end) angles, counter-clockwise (gsmn.task.metrics.side_of:
+    back around d = landmark - start, front around -d, left counter-clockwise)."""
+    lm = world.landmarks[landmark_index]
     d = math.atan2(lm.y - world.start_y, lm.x - world.start_x)
-    centre = d + {"back": 0.0, "front": math.pi, "left": math.pi / 2, "right": -math.pi / 2}[instruction.side]
+    centre = d + SIDE_TURN[side]
     return centre - math.pi / 4, centre + math.pi / 4
+
+
+def quadrant_angles(world: WorldSpec, instruction: Instruction) -> tuple[float, float]:
+    """The success quadrant of an instruction around its landmark as (start, end) angles, counter-clockwise."""
+    return side_angles(world, instruction.landmark_index, instruction.side)
 
 
 def _segments(points: np.ndarray) -> np.ndarray:
@@ -192,10 +205,17 @@ class SceneView:
         self.world: WorldSpec | None = None
         self.show_task = True
 
-    def draw_world(self, world: WorldSpec, on_ground_click=None) -> None:
-        """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field."""
+    def draw_world(self, world: WorldSpec, on_ground_click=None, on_landmark_click=None) -> None:
+        """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field,
+        `on_landmark_click(name)` with the name of a landmark clicked."""
         draw_world(self.scene, world, self.catalogue)
         self.world = world
+        if on_landmark_click is not None:
+            handles = self.scene._handle_from_node_name
+            for i, lm in enumerate(world.landmarks):
+                for name, handle in list(handles.items()):
+                    if name.startswith(f"/world/landmark_{i}/part_"):
+                        handle.on_click(lambda _, phrase=lm.noun_phrase: on_landmark_click(phrase))
         if on_ground_click is not None:
             field = self.scene._handle_from_node_name.get("/world/field")
 
@@ -243,6 +263,31 @@ class SceneView:
             points = np.column_stack([path, np.full(len(path), 0.1)])
             self.scene.add_line_segments(f"{prefix}/demo", _segments(points), DEMO_RGB, thickness=0.18,
                                          visible=self.show_task)
+
+    def draw_sides(self, world: WorldSpec | None, instruction: Instruction | None = None) -> None:
+        """While an instruction is typed: the four sides around the landmark it names, each labelled, the one asked
+        stronger, and the line from the start that they are taken from (left and right as seen from the start);
+        None clears them. This also marks which landmark an ambiguous name means."""
+        for name in SIDE_PARTS:
+            if _has(self.scene, f"/sides/{name}"):
+                self.scene.remove_by_name(f"/sides/{name}")
+        if world is None or instruction is None or world != self.world:
+            return
+        lm = world.landmarks[instruction.landmark_index]
+        r = self.success_radius
+        self.scene.add_line_segments("/sides/from_start", np.array([[[world.start_x, world.start_y, 0.2],
+                                                                     [lm.x, lm.y, 0.2]]], np.float32),
+                                     (255, 255, 255), line_width=2.0)
+        for side in SIDE_TURN:
+            a0, a1 = side_angles(world, instruction.landmark_index, side)
+            verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, 0.03)
+            asked = side == instruction.side
+            self.scene.add_mesh_simple(f"/sides/{side}", verts, faces, color=SIDES_RGB[side],
+                                       opacity=0.75 if asked else 0.35, cast_shadow=False, receive_shadow=False)
+            mid = (a0 + a1) / 2
+            self.scene.add_label(f"/sides/{side}_label", side.upper() if asked else side,
+                                 position=(lm.x + 0.7 * r * math.cos(mid), lm.y + 0.7 * r * math.sin(mid), 0.4),
+                                 anchor="center")
 
     def draw_counterfactual(self, instruction: Instruction | None) -> None:
         self.draw_task(instruction, None, prefix="/whatif", rgb=COUNTERFACTUAL_RGB)

@@ -210,11 +210,13 @@ def test_the_drawn_quadrant_is_the_one_the_metric_accepts():
 
 
 def test_landmark_labels_do_not_overlap_from_the_first_camera():
-    """In env 70 the globe's label sits on the windmill's at their natural heights; raised, no two labels of the
-    first 100 test worlds overlap as the 3D view first shows them, and none is lowered."""
+    """Some labels sit on each other at their natural heights (in env 84 the tower's and the tire stack's, seen from
+    the first camera); raised, no two labels of the first 100 test worlds overlap as the 3D view first shows them,
+    and none is lowered."""
     from gsmn.world.assets import load_catalogue
 
     top_of = {m.name: m.height for m in load_catalogue()}
+    clashes = 0
     for env_id in split_env_ids("test", 100):
         world = world_for_env(env_id)
         tops = [(lm.x, lm.y, top_of[lm.model] * lm.scale) for lm in world.landmarks]
@@ -223,11 +225,11 @@ def test_landmark_labels_do_not_overlap_from_the_first_camera():
         boxes = [label_box((x, y, z), t) for (x, y, _), z, t in zip(tops, heights, texts, strict=True)]
         assert all(z >= top + LABEL_GAP - 1e-9 for (_, _, top), z in zip(tops, heights, strict=True))
         assert not any(boxes_overlap(a, b) for i, a in enumerate(boxes) for b in boxes[i + 1:]), env_id
-        if env_id == 70:
-            natural = [label_box((x, y, top + LABEL_GAP), t) for (x, y, top), t in zip(tops, texts, strict=True)]
-            globe, windmill = texts.index("globe"), texts.index("windmill")
-            assert boxes_overlap(natural[globe], natural[windmill])
-            assert heights[globe] > tops[globe][2] + LABEL_GAP  # the farther one rose
+        natural = [label_box((x, y, top + LABEL_GAP), t) for (x, y, top), t in zip(tops, texts, strict=True)]
+        if any(boxes_overlap(a, b) for i, a in enumerate(natural) for b in natural[i + 1:]):
+            clashes += 1
+            assert any(z > top + LABEL_GAP for (_, _, top), z in zip(tops, heights, strict=True))  # one rose
+    assert clashes > 0  # the test sees the case it is about
 
 
 def _episode_with_steps() -> Episode:
