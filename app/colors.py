@@ -26,7 +26,7 @@ _DIVERGING = np.array([(33, 102, 172), (103, 169, 207), (209, 229, 240), (247, 2
                        (239, 138, 98), (178, 24, 43)], dtype=np.float64)
 COLORMAPS = {"viridis": _VIRIDIS, "diverging": _DIVERGING}
 
-UNSEEN_RGB = (96, 96, 104)  # semantic-map cells the camera has never covered: a dark grey, with its swatch in the legend
+UNSEEN_RGB = (96, 96, 104)  # cells the camera has never covered: dark grey, with its swatch in the legend
 OTHER_RGB = (236, 228, 210)  # cells read as a landmark class this world does not have (the head has no "ground")
 
 

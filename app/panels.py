@@ -90,16 +90,14 @@ def which_landmark(world, instruction) -> str:
     same = world.landmarks_named(instruction.noun_phrase)
     lm = world.landmarks[instruction.landmark_index]
     dist = math.hypot(lm.x - world.start_x, lm.y - world.start_y)
-    return (f"ambiguous: {len(same)} landmarks here are called \"{html.escape(instruction.noun_phrase)}\"; it means "
-            f"the one at x {lm.x:.0f} m, y {lm.y:.0f} m, {dist:.0f} m from the start, marked in the 3D view with its "
-            f"four sides")
+    return (f"ambiguous: {len(same)} are called \"{html.escape(instruction.noun_phrase)}\"; it means the one at "
+            f"x {lm.x:.0f} m, y {lm.y:.0f} m, {dist:.0f} m from the start, drawn with its four sides")
 
 
 def side_help(world, instruction) -> str:
     """What left, right, front and back mean (gsmn.task.metrics.side_of), for the landmark the text names."""
-    return (f"Sides are seen from the start: **front** faces the start, **back** is beyond the "
-            f"{html.escape(instruction.noun_phrase)}, **left** and **right** as you look at it from the start "
-            f"(drawn around it in the 3D view).")
+    return ("Sides are seen from the start (the white line in the 3D view): **front** faces it, **back** is beyond "
+            f"the {html.escape(instruction.noun_phrase)}, **left** and **right** as you look from there.")
 
 
 def parse_env_id(text) -> int:

@@ -26,6 +26,7 @@ COUNTERFACTUAL_RGB = (245, 190, 30)
 MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the texture's linear filtering
 LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other layer: just below the semantic map
 OTHER_LAYER_HEIGHT = 0.02
+SIDES_HEIGHT = 0.1  # the four sides drawn while an instruction is typed: above every layer
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 # The 3D view's first camera: over the field from beyond the middle of its south edge (viser's vertical field of
@@ -34,6 +35,11 @@ TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 # corner and the drone were cut off at the right edge.
 DEFAULT_CAMERA = {"position": (15.0, -16.0, 32.0), "look_at": (15.0, 12.0, 0.0), "up": (0.0, 0.0, 1.0),
                   "fov": math.radians(75.0)}
+# The depth range. viser's own (0.01 to 1000 m) leaves a 24-bit depth buffer about 1 cm of resolution at 40 m,
+# which is where the field is seen from: the ground's stacked surfaces (field, grid, lakes, region, the map layers
+# 2 cm apart) fought for depth seen from near top-down, one triangle of a layer showing over another. From 0.5 m
+# it is 0.2 mm, and nothing is looked at from closer than the drone's frustum.
+CAMERA_NEAR, CAMERA_FAR = 0.5, 400.0
 LABEL_GAP = 0.6  # m from a landmark's top to its label
 LABEL_STEP = 0.5  # m a label rises at a time to clear another
 LABEL_MAX_RISE = 8.0
@@ -57,8 +63,11 @@ def _rgb(rgba: tuple[float, ...]) -> tuple[int, int, int]:
     return tuple(int(round(255 * c)) for c in rgba[:3])
 
 
-def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetModel, ...]) -> None:
-    """(Re)draw field, lakes and landmarks under /world; replaces what was there."""
+def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetModel, ...], generation: int = 0) -> str:
+    """(Re)draw field, lakes and landmarks under /world; replaces what was there. Returns the folder the landmarks
+    are under: a new name each `generation`, since a landmark drawn under the name another world's landmark had
+    just been removed from sometimes never showed in the page (viser culls a pending removal and a creation of one
+    name against each other; seen in environment 76 after 70: the cone's label without its mesh)."""
     by_name = {m.name: m for m in catalogue}
     L = world.field_size
     if _has(scene, "/world"):
@@ -72,9 +81,11 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
         verts, faces = _fan(np.zeros(2), lake.radius_x, lake.radius_y, 0.0, 2 * math.pi, 48, 0.005)
         scene.add_mesh_simple(f"/world/lake_{i}", verts, faces, color=(51, 107, 191), wxyz=yaw_wxyz(lake.yaw),
                               position=(lake.x, lake.y, 0.0), cast_shadow=False)
+    landmarks = f"/world/landmarks_{generation}"
+    scene.add_frame(landmarks, show_axes=False)
     for i, lm in enumerate(world.landmarks):
         model = by_name[lm.model]
-        frame = f"/world/landmark_{i}"
+        frame = f"{landmarks}/landmark_{i}"
         scene.add_frame(frame, show_axes=False, wxyz=yaw_wxyz(lm.yaw), position=(lm.x, lm.y, 0.0))
         for k, part in enumerate(model.parts):
             scene.add_mesh_simple(f"{frame}/part_{k}", part.vertices, part.faces, color=_rgb(part.rgba),
@@ -83,10 +94,11 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
     heights = label_heights([(lm.x, lm.y, top) for lm, top in zip(world.landmarks, tops, strict=True)],
                             [lm.noun_phrase for lm in world.landmarks])
     for i, (lm, top, z) in enumerate(zip(world.landmarks, tops, heights, strict=True)):
-        scene.add_label(f"/world/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, z), anchor="bottom-center")
+        scene.add_label(f"{landmarks}/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, z), anchor="bottom-center")
         if z > top + LABEL_GAP + 1e-6:  # raised to clear another label: a thin stem says whose it is
-            scene.add_line_segments(f"/world/label_stem_{i}", np.array([[[lm.x, lm.y, top + 0.1], [lm.x, lm.y, z]]]),
-                                    colors=(90, 90, 90), line_width=1.5)
+            stem = np.array([[[lm.x, lm.y, top + 0.1], [lm.x, lm.y, z]]])
+            scene.add_line_segments(f"{landmarks}/label_stem_{i}", stem, colors=(90, 90, 90), line_width=1.5)
+    return landmarks
 
 
 def label_box(point: tuple[float, float, float], text: str, camera: dict = DEFAULT_CAMERA
@@ -204,17 +216,19 @@ class SceneView:
         self.body = None
         self.world: WorldSpec | None = None
         self.show_task = True
+        self.generation = 0  # of the landmarks drawn (`draw_world`)
 
     def draw_world(self, world: WorldSpec, on_ground_click=None, on_landmark_click=None) -> None:
         """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field,
         `on_landmark_click(name)` with the name of a landmark clicked."""
-        draw_world(self.scene, world, self.catalogue)
+        self.generation += 1
+        landmarks = draw_world(self.scene, world, self.catalogue, self.generation)
         self.world = world
         if on_landmark_click is not None:
             handles = self.scene._handle_from_node_name
             for i, lm in enumerate(world.landmarks):
                 for name, handle in list(handles.items()):
-                    if name.startswith(f"/world/landmark_{i}/part_"):
+                    if name.startswith(f"{landmarks}/landmark_{i}/part_"):
                         handle.on_click(lambda _, phrase=lm.noun_phrase: on_landmark_click(phrase))
         if on_ground_click is not None:
             field = self.scene._handle_from_node_name.get("/world/field")
@@ -280,7 +294,7 @@ class SceneView:
                                      (255, 255, 255), line_width=2.0)
         for side in SIDE_TURN:
             a0, a1 = side_angles(world, instruction.landmark_index, side)
-            verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, 0.03)
+            verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, SIDES_HEIGHT)
             asked = side == instruction.side
             self.scene.add_mesh_simple(f"/sides/{side}", verts, faces, color=SIDES_RGB[side],
                                        opacity=0.75 if asked else 0.35, cast_shadow=False, receive_shadow=False)

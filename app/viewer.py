@@ -68,7 +68,7 @@ from app.panels import (
 )
 from app.recording import Episode, StepRecord
 from app.runner import Runner
-from app.scene import DEFAULT_CAMERA, SceneView
+from app.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
 from app.viewer_events import (
     Close,
     CursorMoved,
@@ -150,6 +150,7 @@ class Viewer(RunnerListener):
         camera = server.initial_camera  # over the field from beyond its south-west corner
         camera.position, camera.look_at, camera.up, camera.fov = (DEFAULT_CAMERA[k] for k in (
             "position", "look_at", "up", "fov"))
+        camera.near, camera.far = CAMERA_NEAR, CAMERA_FAR
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)
