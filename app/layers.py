@@ -49,7 +49,7 @@ NOT_KEPT = ("features_c", "projected_features_w")
 RECORD_MAPS = tuple(f.name for f in fields(GSMNOutputs) if f.name[-2:] in ("_c", "_w", "_r"))  # as .maps() names
 LAYERS = (*READ_MAPS.values(), *(m for m in RECORD_MAPS if m not in READ_MAPS and m not in NOT_KEPT))
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
-          "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
+          "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (steers it)"}
 FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")

@@ -159,7 +159,7 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     if episode.status != FINISHED or r is None:
         n = len(episode.steps)
         where = f"at step {n - 1}, the timeline's last" if n else "before its first step"
-        return f"### Stopped early\nEpisode {episode.id} {episode.status} {where}." \
+        return f"#### Stopped early\nEpisode {episode.id} {episode.status} {where}." \
             + (f" {html.escape(episode.error)}" if episode.error else "")
     instruction = episode.task.instruction
     verdict = "Success" if r.success else "Failure"
@@ -168,9 +168,9 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     region = "inside" if r.landmark_success else "outside"
     stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
     note = ambiguity_note(episode)
-    ambiguous = f"| instruction | {note} |\n" if note else ""
+    ambiguous = f"| ambiguous | {note} |\n" if note else ""
     passed = "" if r.success else f"| success region | {region_passage(episode, success_radius)} |\n"
-    return (f"### Episode {episode.id}: <span style='color:{colour}'>{verdict}</span>\n"
+    return (f"#### Episode {episode.id}: <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
             f"| distance to goal | **{r.goal_distance:.1f} m** |\n"
@@ -343,11 +343,18 @@ def cell_marks_html(cells: list[tuple[int, int, tuple[int, int, int]]], size: in
                    for r, c, colour in cells if 0 <= r < size and 0 <= c < size)
 
 
+# On a short screen (1280 x 800) the camera and the four map panels must fit the panel's height with the tab bar
+# and the readout: the camera at most 26 % of the window's height, each map (a square) at most 20 %.
+CAMERA_MAX_HEIGHT, MAP_MAX_HEIGHT = "26vh", "20vh"
+
+
 def camera_html(jpeg: bytes) -> str:
-    """The camera panel: the recorded JPEG (256 x 144), scaled to the panel's width with its pixels sharp."""
+    """The camera panel: the recorded JPEG (256 x 144), scaled to the panel's width (at most CAMERA_MAX_HEIGHT
+    high) with its pixels sharp."""
     return (f'<div style="padding-right:10px"><img class="gsmn-camera" '
             f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode("ascii")}" '
-            f'style="{PIXELATED};border-radius:3px"/></div>')
+            f'style="{PIXELATED};max-height:{CAMERA_MAX_HEIGHT};width:auto;max-width:100%;margin:0 auto;'
+            f'border-radius:3px"/></div>')
 
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
@@ -371,9 +378,11 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
         if whatif_text and name in WHATIF_LAYERS:
             title += " · what-if"
         orient = ORIENTATIONS[layer.frame]
-        cells.append(f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">{html.escape(title)}</div>'
-                     f'<div style="position:relative;border-radius:3px;overflow:hidden">'
-                     f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED}" '
+        box = f"position:relative;border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1"
+        cells.append(f'<div><div style="font-weight:600;font-size:12px;line-height:1.2;margin-bottom:2px">'
+                     f'{html.escape(title)}</div>'
+                     f'<div style="{box}">'
+                     f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED};height:100%" '
                      f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
     caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
                f"cells; white: the drone's cell, red: the goal.</div>")

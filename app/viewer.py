@@ -184,7 +184,7 @@ class Viewer(RunnerListener):
         gui.configure_theme(dark_mode=False, show_logo=False, brand_color=(40, 110, 245))
         gui.main_panel.dock_left()
         gui.main_panel.set_width(330)
-        gui.add_markdown("## GSMN dashboard\nFollow an instruction with the Grounded Semantic Mapping Network "
+        gui.add_markdown("**GSMN dashboard**: follow an instruction with the Grounded Semantic Mapping Network "
                          "(Blukis et al., RSS 2018) and watch what it maps, grounds and plans.")
         self.checkpoint_note = gui.add_markdown(self._checkpoint_text())
 
@@ -211,12 +211,13 @@ class Viewer(RunnerListener):
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
+            # the result right under the status: on a 1280 x 800 screen it shows without scrolling
+            self.result = gui.add_markdown("")
         with gui.add_folder("Playback"):
             self.playback = gui.add_button_group("Control", ("Play", "Pause", "Step", "Stop"))
             self.timeline = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0)
             self.follow = gui.add_checkbox(FOLLOW_LABEL, True)
             self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0])
-        self.result = gui.add_markdown("")
         with gui.add_folder("Counterfactual: another instruction, same map"):
             self.whatif = gui.add_text("What if", "", hint="grounded on the semantic map at the shown step")
             self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
@@ -272,7 +273,7 @@ class Viewer(RunnerListener):
                              "a STOP would have succeeded; the model stops when P(stop) passes 0.5. The model's own v "
                              "and omega are in the readout under the camera when the expert flies.")
         panel.dock_right()
-        panel.set_width(440)
+        panel.set_width(420)
         self.panel = panel
 
     def _checkpoint_text(self) -> str:
@@ -329,7 +330,7 @@ class Viewer(RunnerListener):
         try:
             env_id = parse_env_id(self.env_number.value)
         except ValueError as e:
-            self.status.content = error_html(f"**Not started:** {html.escape(str(e))}")
+            self.status.content = error_html(f"**Environment id:** {html.escape(str(e))}")
             return None
         return env_id
 
