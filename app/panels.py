@@ -246,8 +246,8 @@ def whatif_markdown(g: Grounding, record: StepRecord) -> str:
             f"{1000 * g.seconds:.1f} ms on the map already built; gold marks its goal and quadrant.")
 
 
-TIMELINE_PX = 170.0  # the timeline slider's track in the 330-pixel control panel
-MARK_CHAR_PX = 6.2  # a character of a mark's label (viser's slider marks: Mantine's extra-small text)
+TIMELINE_PX = 130.0  # the timeline slider's track in the 330-pixel control panel (measured in Chromium)
+MARK_CHAR_PX = 4.2  # a character of a mark's label (viser's slider marks: 34 px for "in region")
 MARK_GAP_PX = 4.0
 
 

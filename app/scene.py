@@ -291,7 +291,7 @@ class SceneView:
         r = self.success_radius
         self.scene.add_line_segments("/sides/from_start", np.array([[[world.start_x, world.start_y, 0.2],
                                                                      [lm.x, lm.y, 0.2]]], np.float32),
-                                     (255, 255, 255), line_width=2.0)
+                                     (255, 255, 255), thickness=0.08)
         for side in SIDE_TURN:
             a0, a1 = side_angles(world, instruction.landmark_index, side)
             verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, SIDES_HEIGHT)
