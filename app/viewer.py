@@ -206,8 +206,8 @@ class Viewer(RunnerListener):
             self.instruction = gui.add_text("Instruction", "")
             self.instruction_note = gui.add_markdown("")
             # the template's words and this world's landmark names, as buttons that fill the instruction in
-            self.side_chips = gui.add_button_group("Side", SIDES)
-            self.name_chips = gui.add_button_group("Landmark", ("(none)",))
+            self.side_chips = gui.add_button_group("Sides", SIDES)
+            self.name_chips = gui.add_button_group("Landmarks", ("(none)",))
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
