@@ -353,8 +353,7 @@ def camera_html(jpeg: bytes) -> str:
     high) with its pixels sharp."""
     return (f'<div style="padding-right:10px"><img class="gsmn-camera" '
             f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode("ascii")}" '
-            f'style="{PIXELATED};max-height:{CAMERA_MAX_HEIGHT};width:auto;max-width:100%;margin:0 auto;'
-            f'border-radius:3px"/></div>')
+            f'style="{PIXELATED};max-height:{CAMERA_MAX_HEIGHT};object-fit:contain;border-radius:3px"/></div>')
 
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,

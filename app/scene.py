@@ -33,7 +33,7 @@ TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 # view), so that all four corners, where episodes start, fit a canvas down to 0.64 wide per unit of height (1280 x
 # 800 between the side panels) with the drone's frustum; from beyond the south-west corner the south-east start
 # corner and the drone were cut off at the right edge.
-DEFAULT_CAMERA = {"position": (15.0, -16.0, 32.0), "look_at": (15.0, 12.0, 0.0), "up": (0.0, 0.0, 1.0),
+DEFAULT_CAMERA = {"position": (15.0, -20.0, 32.0), "look_at": (15.0, 12.0, 0.0), "up": (0.0, 0.0, 1.0),
                   "fov": math.radians(75.0)}
 # The depth range. viser's own (0.01 to 1000 m) leaves a 24-bit depth buffer about 1 cm of resolution at 40 m,
 # which is where the field is seen from: the ground's stacked surfaces (field, grid, lakes, region, the map layers
@@ -291,7 +291,7 @@ class SceneView:
         r = self.success_radius
         self.scene.add_line_segments("/sides/from_start", np.array([[[world.start_x, world.start_y, 0.2],
                                                                      [lm.x, lm.y, 0.2]]], np.float32),
-                                     (255, 255, 255), thickness=0.08)
+                                     (255, 255, 255), thickness=0.15)
         for side in SIDE_TURN:
             a0, a1 = side_angles(world, instruction.landmark_index, side)
             verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, SIDES_HEIGHT)

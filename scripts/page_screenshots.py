@@ -1,6 +1,6 @@
-"""Screenshots of the page as a new user sees it, at 1500 x 1000 and 1280 x 800 (docs/dashboard.md): an episode of
-the shipped GSMN flown to its end in the Camera and maps tab, the same step in the Actions tab, and an instruction
-being typed with its four sides drawn around the landmark it names.
+"""Screenshots of the page as a new user sees it (docs/dashboard.md): at 1500 x 1000 an episode of the shipped GSMN
+flown to its end, and at 1280 x 800 the same page with another instruction being typed, its four sides drawn
+around the landmark it names.
 
     python scripts/page_screenshots.py [--preset paper] [--env-id 72] [--out docs/img]
 """
@@ -75,16 +75,11 @@ def main() -> int:
             while time.monotonic() < deadline and (not d.runner.episodes.all() or d.runner.episodes.all()[-1].live):
                 time.sleep(0.5)
             page.wait_for_timeout(3000)
-            for width, height in ((1500, 1000), (1280, 800)):
-                page.set_viewport_size({"width": width, "height": height})
-                page.wait_for_timeout(2000)
-                dismiss_notifications(page)
-                page.wait_for_timeout(500)
-                save(page, out / f"page_{width}x{height}.png")
-            page.get_by_role("tab", name="Actions").click()
-            page.wait_for_timeout(1500)
-            save(page, out / "page_actions_1280x800.png")
-            page.get_by_role("tab", name="Camera and maps").click()
+            dismiss_notifications(page)
+            page.wait_for_timeout(500)
+            save(page, out / "page_1500x1000.png")
+            page.set_viewport_size({"width": 1280, "height": 800})
+            page.wait_for_timeout(2000)
             box = field(page, "Instruction")
             box.fill("")
             box.type(a.typed, delay=20)

@@ -425,3 +425,17 @@ def test_the_page_text_a_newcomer_reads():
     k = int(np.nanargmax(cursor))
     assert x[k] == 20 and cursor[k - 1] == cursor[k + 1] == 0 and np.isnan(cursor).sum() == len(x) - 3
     assert v[k - 1] == v[k] == v[k + 1] and (line_05 == 0.5).all() and len({len(c) for c in (x, v, band)}) == 1
+
+
+def test_the_first_view_shows_every_start_corner_and_the_drone():
+    """Item 4 of issue 51: from the first camera, the whole field (every start corner, where the drone begins, with
+    its frustum up to 3 m) lies inside a canvas 0.64 as wide as it is high (1280 x 800 between the side panels)."""
+    from app.scene import LABEL_PX
+
+    half_height = LABEL_PX["viewport"] / 2
+    for x in (-1.0, 31.0):
+        for y in (-1.0, 31.0):
+            for z in (0.0, 3.0):
+                left, top, right, bottom = label_box((x, y, z), "")  # a zero-width label: the point itself
+                u, v = (left + right) / 2, bottom
+                assert abs(u) < 0.64 * half_height and abs(v) < half_height, (x, y, z, u, v)
