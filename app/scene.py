@@ -27,6 +27,7 @@ MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the te
 LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other layer: just below the semantic map
 OTHER_LAYER_HEIGHT = 0.02
 SIDES_HEIGHT = 0.1  # the four sides drawn while an instruction is typed: above every layer
+WHATIF_QUADRANT_HEIGHT = 0.018  # not at OTHER_LAYER_HEIGHT: two surfaces at one height fight for depth
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
 # The 3D view's first camera: over the field from beyond the middle of its south edge (viser's vertical field of
@@ -264,7 +265,7 @@ class SceneView:
             self.scene.add_line_segments(f"{prefix}/ring", _segments(ring), (255, 255, 255), thickness=0.1,
                                          visible=self.show_task)
         a0, a1 = quadrant_angles(world, instruction)
-        verts, faces = _fan(centre, r, r, a0, a1, 16, 0.016 if prefix == "/task" else 0.02)
+        verts, faces = _fan(centre, r, r, a0, a1, 16, 0.016 if prefix == "/task" else WHATIF_QUADRANT_HEIGHT)
         self.scene.add_mesh_simple(f"{prefix}/quadrant", verts, faces, color=rgb, opacity=0.6, cast_shadow=False,
                                    receive_shadow=False, visible=self.show_task)
         self.scene.add_cylinder(f"{prefix}/goal", radius=0.25, height=2.0, color=rgb if prefix != "/task" else DEMO_RGB,

@@ -439,3 +439,27 @@ def test_the_first_view_shows_every_start_corner_and_the_drone():
                 left, top, right, bottom = label_box((x, y, z), "")  # a zero-width label: the point itself
                 u, v = (left + right) / 2, bottom
                 assert abs(u) < 0.64 * half_height and abs(v) < half_height, (x, y, z, u, v)
+
+
+def test_the_ground_surfaces_are_farther_apart_than_the_depth_buffer_resolves():
+    """Item 3 of issue 51: seen from near top-down, two of the ground's stacked surfaces fought for depth. With the
+    view's near plane at CAMERA_NEAR, a 24-bit depth buffer resolves z^2 / (near 2^24) at distance z: far below
+    the closest pair of surfaces (the field's top at -1 mm and the grid at +2 mm) from 60 m, where viser's own near
+    plane (0.01 m) resolved 21 mm."""
+    from app.scene import (
+        CAMERA_FAR,
+        CAMERA_NEAR,
+        LAYER_HEIGHTS,
+        OTHER_LAYER_HEIGHT,
+        SIDES_HEIGHT,
+        WHATIF_QUADRANT_HEIGHT,
+    )
+
+    heights = sorted([-0.001, 0.002, 0.005, 0.012, 0.016, WHATIF_QUADRANT_HEIGHT, *LAYER_HEIGHTS.values(),
+                      OTHER_LAYER_HEIGHT, SIDES_HEIGHT])  # field top, grid, lakes, region, quadrant, what-if, layers
+    gap = min(b - a for a, b in zip(heights, heights[1:], strict=False))
+
+    def resolution(near: float, z: float = 60.0) -> float:
+        return z * z / (near * 2**24)
+
+    assert resolution(CAMERA_NEAR) < gap / 4 < resolution(0.01) and CAMERA_FAR > 100  # the field fits well inside
