@@ -13,7 +13,9 @@ tests/test_dashboard_browser.py (it fails, not skips, without one).
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import time
 
 import numpy as np
@@ -21,8 +23,10 @@ import playwright.sync_api as playwright_api
 import pytest
 
 from app.fixtures import make_untrained_checkpoint
-from tests.test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS, field
 
+CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
 HORIZON = 40
 ENV = 76  # two palm trees
 
@@ -51,6 +55,12 @@ def page(dashboard):
         page.get_by_role("button", name="Run", exact=True).wait_for()
         yield page
         browser.close()
+
+
+def field(page, label: str):
+    """The input of a labelled viser control (viser's <label for> does not point at text inputs)."""
+    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
+        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 def until(predicate, timeout: float = 60.0, what: str = ""):
@@ -160,6 +170,7 @@ def test_a_newcomer_walks_the_page(dashboard, page):
 
     # a clicked landmark goes into the instruction (instruction help): the scene's click, as viser delivers it
     type_instruction(page, "go to the front side of the box")
+    until(lambda: viewer.instruction.value == "go to the front side of the box", what="the text at the server")
     viewer._on_landmark_click("tent")
     until(lambda: field(page, "Instruction").input_value() == "go to the front side of the tent", what="the click")
 
