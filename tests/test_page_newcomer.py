@@ -1,11 +1,11 @@
 """The page as a new user sees it (issue 51), walked in headless Chromium: the landmark count matches the names, the
 semantic-map legend lists only this world's landmarks, an ambiguous name says which landmark it means and the four
-sides are drawn around it, the word chips and a landmark clicked fill the instruction in, a refused Run says so once
-(and the Run button is grey while the text cannot be flown), a bad environment id is refused rather than read as 0,
-the split follows the id typed, the what-if box is checked as typed and a refused Ground drops the old what-if maps,
-the header names the policy that flies, Stop names the step the timeline ends at, the timeline's labels do not meet,
-the Actions plot's cursor moves with the timeline, and at 1280 x 800 the camera, the four maps and the result show
-without scrolling.
+sides are drawn around it, the word chips and a landmark clicked in the 3D view fill the instruction in, a refused
+Run says so once (and the Run button is grey while the text cannot be flown), a bad environment id is refused rather
+than read as 0, the split follows the id typed, the what-if box is checked as typed and a refused Ground drops the
+old what-if maps, the header names the policy that flies, Stop names the step the timeline ends at, the timeline's
+labels do not meet, the Actions plot's cursor moves with the timeline, and at 1280 x 800 the camera, the four maps
+and the result show without scrolling.
 
 The tiny preset and an untrained checkpoint (as the other browser tests); a Chromium as in
 tests/test_dashboard_browser.py (it fails, not skips, without one).
@@ -100,6 +100,22 @@ def type_instruction(page, text: str) -> None:
     box.press("Enter")
 
 
+def screen_point(point, width: float, height: float) -> tuple[float, float]:
+    """Where the 3D view's first camera (app.scene.DEFAULT_CAMERA) shows a world point, in canvas pixels."""
+    import math
+
+    from app.scene import DEFAULT_CAMERA
+
+    eye, target, up = (np.asarray(DEFAULT_CAMERA[k], float) for k in ("position", "look_at", "up"))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    d = np.asarray(point, float) - eye
+    focal = height / 2 / math.tan(DEFAULT_CAMERA["fov"] / 2)
+    return width / 2 + focal * (d @ right) / (d @ forward), height / 2 + focal * (d @ down) / (d @ forward)
+
+
 def cursor_column(page) -> float:
     """The x (in the plot's canvas pixels) of the Actions plot's near-black cursor line."""
     png = page.locator(".uplot canvas").first.screenshot()
@@ -168,10 +184,15 @@ def test_a_newcomer_walks_the_page(dashboard, page):
     page.get_by_role("option", name=re.compile("^Model: ")).first.click()
     until(lambda: "Flies:" not in body(page), what="the header back on the loaded model")
 
-    # a clicked landmark goes into the instruction (instruction help): the scene's click, as viser delivers it
+    # a landmark clicked in the 3D view goes into the instruction (instruction help): a click on the tent's mesh,
+    # where the first camera shows it
     type_instruction(page, "go to the front side of the box")
     until(lambda: viewer.instruction.value == "go to the front side of the box", what="the text at the server")
-    viewer._on_landmark_click("tent")
+    left, top, width, height = page.evaluate("""() => { const c = [...document.querySelectorAll('canvas')]
+        .sort((a, b) => b.width - a.width)[0].getBoundingClientRect(); return [c.left, c.top, c.width, c.height]; }""")
+    tent = next(lm for lm in world.landmarks if lm.noun_phrase == "tent")
+    x, y = screen_point((tent.x, tent.y, 0.8), width, height)
+    page.mouse.click(left + x, top + y)
     until(lambda: field(page, "Instruction").input_value() == "go to the front side of the tent", what="the click")
 
     # run it to the end: the legend lists only this world's landmarks (item 5)
