@@ -205,7 +205,7 @@ def curve_scales(run: Run | None, planned: int | None = None) -> dict:
         planned = int(run.settings.get("iterations") or 0)
     last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1) if run else 1
     return {"x": {"time": False, "range": (1.0, float(max(planned or 0, last, 2)))}, "loss": {"auto": True},
-            "share": {"auto": False, "range": (0.0, 1.0)}}
+            "share": {"auto": False, "range": (0.0, 1.05)}}  # headroom: the top tick "1" is not clipped
 
 
 CURVE_SERIES = ({"label": "iteration"}, {"label": "loss", "stroke": "#2870f5", "width": 2, "scale": "loss"},
