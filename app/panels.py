@@ -1,6 +1,8 @@
 """What the page says and draws beside the 3D scene, as pure functions of an episode and a step: the status and
-result text, the step readout, the counterfactual note, the timeline marks, the cell inspector, the camera
-panel and the map panels (HTML).
+result text, the world's landmarks counted, the step readout, the counterfactual note, the timeline marks, the
+Actions plot's columns, the instruction help (the environment id checked, this world's names suggested, the
+template filled in, which landmark an ambiguous name means), the cell inspector, the camera panel and the map
+panels (HTML).
 
 Images go to the page as they are: the camera image as the JPEG the runner recorded, each map as a PNG with one
 pixel per cell, both scaled up by the browser with `image-rendering: pixelated`, so every pixel and cell stays a
