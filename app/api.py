@@ -304,7 +304,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         if record.maps is None or heads is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
-        layers = map_layers(m.maps, heads)
+        layers = map_layers(m.maps, heads, world_names=tuple(lm.noun_phrase for lm in e.task.world.landmarks))
         if layer not in layers:
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
         return Response(png_bytes(upscale(layers[layer].rgb, 4)), media_type="image/png")

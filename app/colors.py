@@ -26,7 +26,8 @@ _DIVERGING = np.array([(33, 102, 172), (103, 169, 207), (209, 229, 240), (247, 2
                        (239, 138, 98), (178, 24, 43)], dtype=np.float64)
 COLORMAPS = {"viridis": _VIRIDIS, "diverging": _DIVERGING}
 
-UNSEEN_RGB = (58, 58, 64)  # semantic-map cells the camera has never covered
+UNSEEN_RGB = (96, 96, 104)  # cells the camera has never covered: dark grey, with its swatch in the legend
+OTHER_RGB = (236, 228, 210)  # cells read as a landmark class this world does not have (the head has no "ground")
 
 
 def _lut(name: str) -> np.ndarray:
@@ -93,34 +94,72 @@ def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndar
     return best.reshape(H, W), probs.max(0).reshape(H, W), observed.reshape(H, W)
 
 
-def semantic_rgb(classes: np.ndarray, confidence: np.ndarray, observed: np.ndarray, palette: np.ndarray
-                 ) -> np.ndarray:
+def semantic_rgb(classes: np.ndarray, confidence: np.ndarray, observed: np.ndarray, palette: np.ndarray,
+                 n_classes: int | None = None) -> np.ndarray:
     """Class per cell -> RGB (H, W, 3): the class colour, darker where the head is less sure (brightness from
-    0.45 at chance to 1 at certainty), unobserved cells grey."""
-    K = len(palette)
+    0.45 at chance to 1 at certainty), class -1 (`world_classes`: not in this world) pale, unobserved cells grey."""
+    K = max(n_classes or len(palette), 2)  # the head's classes: chance is 1 / 63 whatever the palette shown
     chance = 1.0 / K
     shade = 0.45 + 0.55 * np.clip((confidence - chance) / (1.0 - chance), 0.0, 1.0)
-    rgb = palette[classes].astype(np.float32) * shade[..., None]
+    table = np.vstack([palette.reshape(-1, 3), np.array([OTHER_RGB], np.uint8)]).astype(np.float32)
+    rgb = table[np.where(classes < 0, len(table) - 1, classes)] * shade[..., None]
+    rgb[(classes < 0) & observed] = OTHER_RGB  # another world's class: one flat pale colour, never a dark grey
     rgb[~observed] = UNSEEN_RGB
     return rgb.round().astype(np.uint8)
 
 
+def world_classes(classes: np.ndarray, names: list[str] | tuple[str, ...], world_names) -> np.ndarray:
+    """Map the perception head's class per cell onto this world's landmark names: (H, W) int, the index of the
+    cell's name in the sorted `world_names`, or -1 where the head reads a class this world does not have.
+
+    The head has no "open ground" class (it is trained at landmark cells only), so on open ground it names any of
+    the 63 classes; a legend of those would list palm trees and arches that are not there. Two catalogue models
+    with one name (tower_1, tower_2) are one name here."""
+    order = sorted(set(world_names))
+    index = {name: k for k, name in enumerate(order)}
+    lookup = np.array([index.get(name, -1) for name in names], np.int64)
+    return lookup[classes]
+
+
+def name_palette(names: list[str] | tuple[str, ...], world_names) -> np.ndarray:
+    """A colour per name of this world (sorted), each its catalogue class's colour (the first class of that name),
+    so a landmark keeps its colour from world to world."""
+    palette = class_palette(len(names))
+    first = {}
+    for k, name in enumerate(names):
+        first.setdefault(name, k)
+    return np.array([palette[first[name]] for name in sorted(set(world_names))], np.uint8).reshape(-1, 3)
+
+
 def semantic_legend_html(classes: np.ndarray, observed: np.ndarray, palette: np.ndarray, names: list[str],
-                         top: int = 8) -> str:
-    """The classes covering most observed cells, with their colour and share of the observed area."""
-    counts = np.bincount(classes[observed].ravel(), minlength=len(palette))
-    total = max(int(counts.sum()), 1)
-    order = [int(k) for k in np.argsort(-counts, kind="stable")[:top] if counts[k] > 0]
-    items = []
-    for k in order:
-        r, g, b = (int(c) for c in palette[k])
-        items.append(f'<span style="white-space:nowrap;margin-right:6px"><span style="display:inline-block;'
-                     f'width:9px;height:9px;border-radius:2px;background:rgb({r},{g},{b});margin-right:3px"></span>'
-                     f'{html.escape(names[k])} {100 * counts[k] / total:.0f}%</span>')
+                         top: int = 8, other: bool = False) -> str:
+    """The classes covering most observed cells, with their colour and share of the observed area; `other`: the
+    class -1 ("read as a class this world does not have") gets its own entry. Names shared by several classes are
+    counted once. The grey of unobserved cells is named only when there are some."""
+    seen = classes[observed].ravel()
+    total = max(int(seen.size), 1)
+    shares: dict[str, float] = {}
+    colours: dict[str, tuple[int, int, int]] = {}
+    for k in np.unique(seen):
+        k = int(k)
+        name = "other classes (not in this world)" if k < 0 else names[k]
+        shares[name] = shares.get(name, 0.0) + float((seen == k).sum()) / total
+        colours.setdefault(name, OTHER_RGB if k < 0 else tuple(int(c) for c in palette[k]))
+    order = sorted(shares, key=lambda name: -shares[name])[:top]
+
+    def swatch(rgb, label: str) -> str:
+        r, g, b = rgb
+        return (f'<span style="white-space:nowrap;margin-right:6px"><span style="display:inline-block;width:9px;'
+                f'height:9px;border-radius:2px;background:rgb({r},{g},{b});margin-right:3px;'
+                f'box-shadow:inset 0 0 0 1px rgba(0,0,0,.15)"></span>{html.escape(label)}</span>')
+
+    items = [swatch(colours[name], f"{name} {100 * shares[name]:.0f}%") for name in order]
     if not items:
-        return '<div style="font-size:11px;opacity:.75">nothing observed yet</div>'
-    unseen = ' <span style="opacity:.7">grey: not seen yet</span>' if (~observed).any() else ""
-    return f'<div style="font-size:11px;line-height:1.5">{"".join(items)}{unseen}</div>'
+        return '<div class="gsmn-legend" style="font-size:11px;opacity:.75">nothing observed yet</div>'
+    unseen = (~observed).mean()
+    if unseen > 0:
+        items.append(swatch(UNSEEN_RGB, f"not seen yet {100 * unseen:.0f}% of the map"))
+    return f'<div class="gsmn-legend" style="font-size:11px;line-height:1.5">{"".join(items)}</div>'
 
 
 def upscale(image: np.ndarray, factor: int) -> np.ndarray:

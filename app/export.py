@@ -72,7 +72,8 @@ def step_layers(episode: Episode, t: int, heads: MapHeads | None, legends: dict 
     record = episode.steps[t]
     if record.maps is None or heads is None:
         return {}
-    layers = map_layers(record.maps.maps, heads)
+    names = tuple(lm.noun_phrase for lm in episode.task.world.landmarks)  # the legend lists this world's only
+    layers = map_layers(record.maps.maps, heads, world_names=names)
     if legends is not None:
         legends.update({name: layers[name].legend_html for name in SHOWN if name in layers})
     return {name: layers[name].rgb for name in SHOWN if name in layers}

@@ -13,6 +13,7 @@ from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
 from app.panels import region_text
 from app.supervisor import resumable
 from gsmn.attribution import STAGE_TITLES, reported_stages
+from gsmn.world.spec import split_of
 
 
 def short_path(path: str) -> str:
@@ -100,10 +101,45 @@ _STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08
                   "goal_or_control": "#d35400", "unattributed": "#999"}
 
 
+SORTS = {"flown order": None, "environment id": lambda r: r.env_id,
+         "distance to goal, far first": lambda r: -r.goal_distance,
+         "distance to goal, near first": lambda r: r.goal_distance}
+
+
+def sort_rows(rows: list[EpisodeRow], order: str) -> list[EpisodeRow]:
+    """The failure browser's rows in the order chosen (`SORTS`), ties in the order flown."""
+    key = SORTS[order]
+    return list(rows) if key is None else sorted(rows, key=key)
+
+
+def stage_title(stage: str | None) -> str:
+    """A stage as the attribution bars name it ("goal_or_control" -> "goal or control")."""
+    return STAGE_TITLES.get(stage, stage) if stage else ""
+
+
 def episode_label(r: EpisodeRow) -> str:
-    mark = "✓" if r.success else "✗"
-    stage = f" · {r.stage}" if r.stage else ""
-    return f"▶ {r.env_id} {mark} {r.side} of the {r.landmark} · {r.goal_distance:.1f} m{stage}"
+    mark = "✓ success" if r.success else "✗ failure"
+    stage = f" · {stage_title(r.stage)}" if r.stage else ""
+    return f"▶ {r.env_id} {mark}: {r.side} of the {r.landmark} · {r.goal_distance:.1f} m{stage}"
+
+
+def episode_colour(r: EpisodeRow) -> str:
+    """The row button's colour: a success and a failure told apart at a glance."""
+    return "teal" if r.success else "red"
+
+
+def both_readings(r: EpisodeRow) -> str:
+    """Where a failure's attribution (read from its final maps) and its success-region passage both hold, why:
+    the drone passed where a STOP would have succeeded, and its maps went wrong later, or never made it stop."""
+    if r.success or not r.region_steps or not r.stage or r.stage == "control":
+        return ""
+    a = r.attribution or {}
+    peak = (f" (its goal map then peaked {a['goal_peak_error']:.1f} m from the goal)"
+            if r.stage == "goal" and a.get("goal_peak_error") is not None else "")
+    return (f"<div class='gsmn-both' style='font-size:12px;margin:2px 0 4px'>Both readings hold: the attribution reads "
+            f"the maps at the episode's end{peak}, while on the way the drone flew through the success region "
+            f"without a STOP, where one would have succeeded. It failed to stop first; the maps it ended with "
+            f"explain why it did not come back.</div>")
 
 
 def episode_html(r: EpisodeRow, note: str) -> str:
@@ -125,13 +161,14 @@ def episode_html(r: EpisodeRow, note: str) -> str:
                   else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
                                                                     f"goal, P {a['goal_peak_p']:.2f})")]
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
+    both = both_readings(r)
     verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
                f"{html.escape(STAGE_TITLES.get(stage, stage))}</div>"
                f"<div style='margin-bottom:4px'>{html.escape(a.get('reason', ''))}</div>") if a or r.success else ""
     table = "".join(f"<tr><td style='opacity:.7;padding-right:8px'>{k}</td><td>{v}</td></tr>" for k, v in rows)
     return (f'<div class="gsmn-episode" data-env="{r.env_id}" data-evaluation="{r.evaluation_id}" '
             f'style="font-size:13px;padding-right:8px"><div style="font-weight:600">Environment {r.env_id}</div>'
-            f"{verdict}<table>{table}</table><div class='gsmn-replay' style='margin-top:4px'>{note}</div></div>")
+            f"{verdict}{both}<table>{table}</table><div class='gsmn-replay' style='margin-top:4px'>{note}</div></div>")
 
 
 def run_resume_hint(r: Run) -> str:
@@ -159,14 +196,31 @@ def runs_html(runs: list[Run]) -> str:
     return f"<table class='gsmn-runs' style='font-size:12px'><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def curve_scales(run: Run | None) -> dict:
-    """The chart's x axis spans the run's planned iterations, from 1: the curves grow across it as the run goes
-    (uPlot's own range for a single point is 0-100, which read as a hundred iterations)."""
-    if run is None:
-        return {"x": {"time": False}}
-    planned = int(run.settings.get("iterations") or 0)
-    last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1)
-    return {"x": {"time": False, "range": (1.0, float(max(planned, last, 2)))}}
+def curve_scales(run: Run | None, planned: int | None = None) -> dict:
+    """The chart's x axis spans the run's planned iterations (or, before any run, the `planned` iterations of the
+    form), from 1: the curves grow across it as the run goes (uPlot's own range for a single point or none is
+    0-100, which read as a hundred iterations). Losses have their own axis on the left; the two shares theirs,
+    0 to 1, on the right."""
+    if run is not None:
+        planned = int(run.settings.get("iterations") or 0)
+    last = max((int(m.get("iteration", k + 1)) for k, m in enumerate(run.metrics)), default=1) if run else 1
+    return {"x": {"time": False, "range": (1.0, float(max(planned or 0, last, 2)))}, "loss": {"auto": True},
+            "share": {"auto": False, "range": (0.0, 1.05)}}  # headroom: the top tick "1" is not clipped
+
+
+CURVE_SERIES = ({"label": "iteration"}, {"label": "loss", "stroke": "#2870f5", "width": 2, "scale": "loss"},
+                {"label": "action loss", "stroke": "#e08020", "width": 2, "scale": "loss"},
+                {"label": "learner's share of steps", "stroke": "#1e8449", "width": 2, "dash": [4, 3],
+                 "scale": "share"},
+                {"label": "rollouts succeeded", "stroke": "#8e44ad", "width": 2, "scale": "share"})
+CURVE_AXES = ({"label": "iteration"}, {"scale": "loss", "label": "loss"},
+              {"scale": "share", "label": "share (0-1)", "side": 1, "grid": {"show": False}})
+# What the form's DAggerFM settings are (paper: Learning, DAggerFM), said beside them.
+SETTING_HINTS = {
+    "N_D": "N_D: rollouts flown per iteration, each adding its steps to the dataset",
+    "M": "M: the dataset's size in rollouts; the oldest are dropped past it (at least N_D)",
+    "beta0": "beta0: in iteration i the expert flies with probability beta0^i, the model otherwise",
+}
 
 
 def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
@@ -182,7 +236,7 @@ def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
     return it, loss, action, learner, succeeded
 
 
-def compare_html(c: dict, after: Evaluation | None) -> str:
+def compare_html(c: dict, after: Evaluation | None, run: Run | None = None) -> str:
     def cell(b: dict) -> str:
         mark = "<b style='color:#1e8449'>✓</b>" if b["success"] else "<b style='color:#c0392b'>✗</b>"
         return f"{mark} {b['goal_distance']:.1f} m{' · ' + b['stage'] if b['stage'] else ''}"
@@ -196,8 +250,31 @@ def compare_html(c: dict, after: Evaluation | None) -> str:
         return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.1f} m"
 
     return (f"<div class='gsmn-compare' data-before='{c['before']}' data-after='{c['after']}' style='font-size:12px'>"
+            f"{trained_on_note(c, run)}"
             f"<div style='font-size:13px;margin-bottom:4px'>Evaluation {c['before']} → {c['after']}: success "
             f"<b>{_pct(c['before_success'])} → {_pct(c['after_success'])}</b>, mean distance "
             f"{dist(c['before_mean_distance'])} → {dist(c['after_mean_distance'])}; {c['fixed']} fixed, "
             f"{c['broken']} broken.</div><table><tr><th style='text-align:left'>env</th><th style='text-align:left'>"
-            f"before</th><th style='text-align:left'>after</th></tr>{rows}</table></div>")
+            f"before</th><th style='text-align:left'>after</th></tr>{rows}</table>"
+            f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Replay a row with the buttons below.</div></div>")
+
+
+def trained_on_note(c: dict, run: Run | None) -> str:
+    """Which episodes the run trained on, so before/after on them is not read as held-out performance."""
+    if run is None:
+        return ""
+    compared = {r["env_id"] for r in c["episodes"]}
+    if not run.env_ids:
+        train = sum(split_of(e) == "train" for e in compared)
+        held = "held out from it" if not train else f"{train} of them from the train split it trained on"
+        return (f"<div class='gsmn-trained-on' style='margin-bottom:4px'>run-{run.id} trained on the train split; "
+                f"these {len(compared)} episodes are {held}.</div>")
+    trained = compared & set(run.env_ids)
+    if trained == compared:
+        what = (f"all {len(compared)} of these episodes are ones run-{run.id} trained on: the figures are on its "
+                f"training episodes, not held-out performance")
+    elif trained:
+        what = f"{len(trained)} of these {len(compared)} episodes are ones run-{run.id} trained on"
+    else:
+        what = f"none of these episodes were trained on (run-{run.id} trained on {len(run.env_ids)} others)"
+    return f"<div class='gsmn-trained-on' style='margin-bottom:4px;color:#9a6b00'>{what}.</div>"

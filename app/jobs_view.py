@@ -25,9 +25,14 @@ from app.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
 from app.jobs import JobManager
 from app.jobs_api import replay_policy
 from app.jobs_panels import (
+    CURVE_AXES,
+    CURVE_SERIES,
+    SETTING_HINTS,
+    SORTS,
     compare_html,
     curve_data,
     curve_scales,
+    episode_colour,
     episode_html,
     episode_label,
     error_summary,
@@ -37,23 +42,25 @@ from app.jobs_panels import (
     run_resume_hint,
     runs_html,
     short_path,
+    sort_rows,
     summary_html,
 )
 from app.panels import error_html
 from app.recording import Episode
 from app.run_settings import RUN_PRESETS, run_settings
-from gsmn.attribution import STAGES
+from gsmn.attribution import STAGE_TITLES, STAGES
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS
 
 log = logging.getLogger("gsmn.dashboard")
 
-ROWS = 8  # episode buttons per page of the failure browser
+ROWS = 12  # episode buttons per page of the failure browser
 REGION_CHOICES = {"flew through it": True, "never entered": False}  # the "Success region" filter
 ALL = "all"
 EXPERT_CHOICE = "Expert (oracle)"
 ENV_TRAIN = "train split"
 REFRESH_SECONDS = 0.5
+STAGE_OF_TITLE = {STAGE_TITLES[k]: k for k in STAGES}  # the filter shows the bars' names
 
 
 class JobsView(RunnerListener):
@@ -108,8 +115,12 @@ class JobsView(RunnerListener):
                 self.eval_progress = gui.add_progress_bar(0.0, visible=False)
                 self.eval_status = gui.add_markdown("Evaluations run in their own process; their episodes and "
                                                     "failures appear below as they finish.")
-                self.import_path = gui.add_text("Load results", "", hint="a `gsmn eval --json` file")
-                self.import_button = gui.add_button("Load gsmn eval JSON", icon=viser.Icon.UPLOAD)
+                # loading a file is the rarer way in: folded away, and said to read the server's disk
+                with gui.add_folder("Or load a gsmn eval JSON file", expand_by_default=False):
+                    gui.add_markdown("A `gsmn eval --json` file **on the server**, inside its data folder (a relative "
+                                     "path starts there); it is not uploaded from this browser.")
+                    self.import_path = gui.add_text("Path on server", "", hint="e.g. runs/gsmn.json")
+                    self.import_button = gui.add_button("Load", icon=viser.Icon.UPLOAD, color="gray")
             with gui.add_folder("Failure browser"):
                 self.evaluation = gui.add_dropdown("Evaluation", ("(none yet)",))
                 self.summary = gui.add_html("")
@@ -117,10 +128,12 @@ class JobsView(RunnerListener):
                 self.landmark = gui.add_dropdown("Landmark", (ALL,))
                 self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
                 self.ambiguous = gui.add_dropdown("Ambiguous", (ALL, "ambiguous", "unambiguous"))
-                self.stage = gui.add_dropdown("Attributed to", (ALL, *STAGES))
+                self.stage = gui.add_dropdown("Attributed to", (ALL, *(STAGE_TITLES[k] for k in STAGES)),
+                                              hint="the names of the bars above")
                 self.region = gui.add_dropdown("Success region", (ALL, *REGION_CHOICES),
                                                hint="whether the drone was ever where a STOP would have succeeded: "
                                                     "a failure that flew through it failed on its STOP")
+                self.sort = gui.add_dropdown("Sort by", tuple(SORTS), initial_value="flown order")
                 self.list_note = gui.add_markdown("")
                 self.row_buttons = [gui.add_button(f"row {k}", visible=False) for k in range(ROWS)]
                 self.pager = gui.add_button_group("Page", ("Previous", "Next"))
@@ -134,10 +147,13 @@ class JobsView(RunnerListener):
                                                         "the original's 150 iterations")
                 s = RUN_PRESETS["tiny"]
                 self.run_iterations = gui.add_number("Iterations", s.iterations, min=1, max=10000, step=1)
-                self.run_nd = gui.add_number("N_D (rollouts/iter)", s.rollouts_per_iteration, min=1, step=1)
-                self.run_m = gui.add_number("M (dataset size)", s.dataset_size, min=1, step=1)
+                self.run_nd = gui.add_number("N_D (rollouts/iter)", s.rollouts_per_iteration, min=1, step=1,
+                                             hint=SETTING_HINTS["N_D"])
+                self.run_m = gui.add_number("M (dataset size)", s.dataset_size, min=1, step=1, hint=SETTING_HINTS["M"])
                 self.run_beta0 = gui.add_number("beta0", s.beta0, min=0.0, max=1.0, step=0.01,
-                                                hint="the expert acts with probability beta0^i in iteration i")
+                                                hint=SETTING_HINTS["beta0"])
+                gui.add_markdown("<span style='font-size:12px;opacity:.8'>" + "<br>".join(SETTING_HINTS.values())
+                                 + ".</span>")
                 self.run_lr = gui.add_number("Learning rate", s.learning_rate, min=1e-6, max=1.0, step=1e-5)
                 self.run_mirror = gui.add_number("Mirrored share", s.mirror, min=0.0, max=1.0, step=0.05,
                                                  hint="the share of training episodes mirrored east-west, left and "
@@ -148,14 +164,8 @@ class JobsView(RunnerListener):
                 self.run_progress = gui.add_progress_bar(0.0, visible=False)
                 self.run_status = gui.add_markdown("A run trains in its own process; one at a time.")
                 self.curves = gui.add_uplot(
-                    data=curve_data([]),
-                    series=({"label": "iteration"}, {"label": "loss", "stroke": "#2870f5", "width": 2},
-                            {"label": "action loss", "stroke": "#e08020", "width": 2},
-                            {"label": "learner steps", "stroke": "#1e8449", "width": 2, "dash": [4, 3]},
-                            {"label": "rollouts succeeded", "stroke": "#8e44ad", "width": 2}),
-                    title="Training loss per iteration; the shares of steps the learner flew and of the "
-                          "iteration's rollouts that succeeded", aspect=1.6,
-                    scales=curve_scales(None), axes=({"label": "iteration"}, {}))
+                    data=curve_data([]), series=CURVE_SERIES, title="Per iteration", aspect=1.5,
+                    scales=curve_scales(None, s.iterations), axes=CURVE_AXES)
             with gui.add_folder("Runs"):
                 self.runs_table = gui.add_html("")
                 self.run_choice = gui.add_dropdown("Finished run", ("(none yet)",))
@@ -164,11 +174,15 @@ class JobsView(RunnerListener):
             with gui.add_folder("Before / after"):
                 self.compare = gui.add_html(note_html("Before/after reruns the failures' evaluation with the "
                                                          "finished run's checkpoint and shows both side by side."))
+                self.compare_env = gui.add_dropdown("Environment", ("(none yet)",))
+                self.compare_replay = gui.add_button_group("Replay", ("Before", "After"))
+                self.compare_note = gui.add_markdown("")
 
         self.eval_buttons.on_click(lambda e: self._events.put(("eval", e.target.value)))
         self.import_button.on_click(lambda _: self._events.put(("import", self.import_path.value.strip())))
         self.evaluation.on_update(lambda e: e.client is not None and self._events.put(("browse",)))
-        for control in (self.failed_only, self.landmark, self.side, self.ambiguous, self.stage, self.region):
+        for control in (self.failed_only, self.landmark, self.side, self.ambiguous, self.stage, self.region,
+                        self.sort):
             control.on_update(lambda e: e.client is not None and self._events.put(("filter",)))
         for k, button in enumerate(self.row_buttons):
             button.on_click(lambda _, k=k: self._events.put(("row", k)))
@@ -176,6 +190,8 @@ class JobsView(RunnerListener):
         self.run_preset.on_update(lambda e: e.client is not None and self._events.put(("preset",)))
         self.run_buttons.on_click(lambda e: self._events.put(("run", e.target.value)))
         self.run_actions.on_click(lambda e: self._events.put(("run_action", e.target.value)))
+        self.compare_replay.on_click(lambda e: self._events.put(("compare_replay", e.target.value)))
+        self.run_iterations.on_update(lambda e: e.client is not None and self._events.put(("iterations",)))
 
     def _checkpoint_choices(self, expert: bool) -> tuple[str, ...]:
         choices = tuple(c for c in self.viewer._policy_choices() if c != EXPERT_CHOICE)
@@ -244,6 +260,10 @@ class JobsView(RunnerListener):
             {"Launch": self._launch, "Cancel": self._cancel_run, "Resume": self._resume_run}[event[1]]()
         elif kind == "run_action":
             self._run_action(event[1])
+        elif kind == "compare_replay":
+            self._compare_replay(event[1])
+        elif kind == "iterations" and not self.jobs.db.runs():  # the empty chart spans the iterations planned
+            self.curves.scales = curve_scales(None, int(self.run_iterations.value))
 
     # -- evaluations -------------------------------------------------------------------------------------------
     def _evaluate(self) -> None:
@@ -316,8 +336,9 @@ class JobsView(RunnerListener):
             e.id, failed_only=bool(self.failed_only.value),
             landmark=None if self.landmark.value == ALL else self.landmark.value,
             side=None if self.side.value == ALL else self.side.value, ambiguous=ambiguous,
-            stage=None if self.stage.value == ALL else self.stage.value,
+            stage=STAGE_OF_TITLE.get(self.stage.value),
             entered_region=REGION_CHOICES.get(self.region.value))
+        self.rows = sort_rows(self.rows, self.sort.value)
         self._show_rows()
         failures = [r.env_id for r in self.rows if not r.success]
         label = f"failures selected in the browser ({len(failures)})"
@@ -336,6 +357,7 @@ class JobsView(RunnerListener):
         for k, button in enumerate(self.row_buttons):
             if k < len(shown):
                 button.label = episode_label(shown[k])
+                button.color = episode_colour(shown[k])
                 button.visible = True
             else:
                 button.visible = False
@@ -453,6 +475,21 @@ class JobsView(RunnerListener):
         self.run_note.content = f"Evaluation {e.id} reruns the episodes of evaluation {baseline} with run-{run.id}."
         self._refresh()
 
+    def _compare_replay(self, which: str) -> None:
+        """Fly a before/after row again in the live view: the evaluation before the run, or the one after."""
+        if self.compare_ids is None or not self.compare_env.value.isdigit():
+            self.compare_note.content = "No before/after yet."
+            return
+        evaluation_id = self.compare_ids[0 if which == "Before" else 1]
+        row = self.jobs.db.episode(evaluation_id, int(self.compare_env.value))
+        if row is None:
+            self.compare_note.content = f"Environment {self.compare_env.value} has no episode in evaluation " \
+                                        f"{evaluation_id} yet."
+            return
+        self.compare_note.content = (f"Replaying environment {row.env_id} as flown {which.lower()} the run "
+                                     f"(evaluation {evaluation_id}) in the live view; its card is in Failures.")
+        self._replay(row)
+
     # -- refreshing from the database --------------------------------------------------------------------------
     def _refresh(self) -> None:
         evaluations = self.jobs.db.evaluations()
@@ -537,7 +574,13 @@ class JobsView(RunnerListener):
             self.compare_ids = (latest[-1].baseline_id, latest[-1].id)
         before, after = self.compare_ids
         try:
-            self.compare.content = compare_html(self.jobs.compare(before, after),
-                                                self.jobs.db.evaluation(after))
+            evaluation = self.jobs.db.evaluation(after)
+            c = self.jobs.compare(before, after)
+            run = self.jobs.db.run(evaluation.run_id) if evaluation is not None and evaluation.run_id else None
+            self.compare.content = compare_html(c, evaluation, run)
         except RunnerError as err:
             self.compare.content = error_html(html.escape(str(err)))
+            return
+        envs = tuple(str(r["env_id"]) for r in c["episodes"]) or ("(none yet)",)
+        if tuple(self.compare_env.options) != envs:
+            self.compare_env.options = envs

@@ -1,7 +1,8 @@
 """The model's maps as layers a person can read (paper: Model Architecture; docs/model.md for the maps).
 
 - semantic: the perception head (semantic-map cell -> 63 landmark classes) on every cell, drawn as the most
-  likely landmark with a legend; grey where the camera has not looked yet.
+  likely landmark of this world with a legend (one entry per name); pale where the head reads a landmark this world
+  does not have (it has no "open ground" class), grey where the camera has not looked yet.
 - relevance: P(the cell holds the landmark the instruction names), the grounding head Linear(3 -> 2) on the
   relevance map; cells never observed are left transparent on the ground.
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
@@ -26,9 +27,11 @@ from app.colors import (
     apply_colormap,
     class_palette,
     colorbar_html,
+    name_palette,
     semantic_classes,
     semantic_legend_html,
     semantic_rgb,
+    world_classes,
 )
 from gsmn.attribution import Heads, cell_centre
 from gsmn.model.grid import world_cell
@@ -46,7 +49,7 @@ NOT_KEPT = ("features_c", "projected_features_w")
 RECORD_MAPS = tuple(f.name for f in fields(GSMNOutputs) if f.name[-2:] in ("_c", "_w", "_r"))  # as .maps() names
 LAYERS = (*READ_MAPS.values(), *(m for m in RECORD_MAPS if m not in READ_MAPS and m not in NOT_KEPT))
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
-          "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (controller input)"}
+          "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (steers it)"}
 FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
@@ -105,17 +108,25 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
-                 heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed") -> dict[str, Layer]:
-    """All four layers of one step (maps as stored: float16 or float32, channels first)."""
+                 heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed",
+                 world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
+    """All four layers of one step (maps as stored: float16 or float32, channels first). With `world_names` (the
+    world's landmark names) the semantic map colours and lists only those, one entry per name, and draws cells
+    read as another world's landmark in one pale colour (`app.colors.world_classes`)."""
     if value_mode not in VALUE_MODES:
         raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
     if range_mode not in RANGE_MODES:
         raise ValueError(f"range_mode must be one of {RANGE_MODES}, got {range_mode!r}")
     classes, confidence, observed = semantic_classes(semantic_w, heads.perception_w, heads.perception_b)
-    palette = heads.palette
-    semantic = Layer("semantic", TITLES["semantic"], semantic_rgb(classes, confidence, observed, palette),
-                     observed.astype(np.float32),
-                     semantic_legend_html(classes, observed, palette, list(heads.class_names)), confidence)
+    if world_names:
+        names = sorted(set(world_names))
+        classes = world_classes(classes, heads.class_names, names)
+        palette = name_palette(heads.class_names, names)
+    else:
+        names, palette = list(heads.class_names), heads.palette
+    semantic = Layer("semantic", TITLES["semantic"],
+                     semantic_rgb(classes, confidence, observed, palette, len(heads.class_names)),
+                     observed.astype(np.float32), semantic_legend_html(classes, observed, palette, names), confidence)
     goal_title = None
     if value_mode == "probability" and not heads.goal_trained:  # no J_plan: show what the controller reads
         relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
@@ -140,10 +151,10 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
 
 
 def map_layers(maps: dict[str, np.ndarray], heads: MapHeads, value_mode: str = "probability",
-               range_mode: str = "fixed") -> dict[str, Layer]:
+               range_mode: str = "fixed", world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
     """A layer for each map of one step of the output record (`GSMNOutputs.maps()` names, channels first): the maps
     the heads read as `build_layers` shows them, then every other one as its channel 0 (this frame's range)."""
-    out = build_layers(*(maps[name] for name in READ_MAPS), heads, value_mode, range_mode)
+    out = build_layers(*(maps[name] for name in READ_MAPS), heads, value_mode, range_mode, world_names)
     for name, m in maps.items():
         if name in READ_MAPS:
             continue

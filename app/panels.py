@@ -1,6 +1,8 @@
 """What the page says and draws beside the 3D scene, as pure functions of an episode and a step: the status and
-result text, the step readout, the counterfactual note, the timeline marks, the cell inspector, the camera
-panel and the map panels (HTML).
+result text, the world's landmarks counted, the step readout, the counterfactual note, the timeline marks, the
+Actions plot's columns, the instruction help (the environment id checked, this world's names suggested, the
+template filled in, which landmark an ambiguous name means), the cell inspector, the camera panel and the map
+panels (HTML).
 
 Images go to the page as they are: the camera image as the JPEG the runner recorded, each map as a PNG with one
 pixel per cell, both scaled up by the browser with `image-rendering: pixelated`, so every pixel and cell stays a
@@ -14,8 +16,10 @@ import base64
 import html
 import math
 
+import numpy as np
+
 from app.colors import data_uri, png_bytes
-from app.commands import Grounding
+from app.commands import MAX_ENV_ID, Grounding
 from app.layers import CellReport, Layer
 from app.recording import FINISHED, Episode, StepRecord
 from gsmn.task.metrics import steps_in_success_region
@@ -65,12 +69,99 @@ def ambiguity_note(episode: Episode) -> str:
             f"the ringed one, and ending at another of them counts as a failure.*")
 
 
+def plural(name: str, n: int) -> str:
+    if n == 1:
+        return name
+    return f"{n} {name}{'es' if name.endswith(('s', 'x', 'sh', 'ch')) else 's'}"
+
+
+def world_summary(world) -> str:
+    """"8 landmarks: box, cone, 2 palm trees, pyramid, rock, tent": the count and every landmark, names shared by
+    several landmarks counted, so the names always add up to the count."""
+    counts: dict[str, int] = {}
+    for lm in world.landmarks:
+        counts[lm.noun_phrase] = counts.get(lm.noun_phrase, 0) + 1
+    names = ", ".join(plural(name, counts[name]) for name in sorted(counts))
+    n = len(world.landmarks)
+    return f"{n} landmark{'s' if n != 1 else ''}: {html.escape(names)}"
+
+
+def which_landmark(world, instruction) -> str:
+    """For an ambiguous instruction: which of the landmarks of that name it means (the first in the world's list;
+    the instruction cannot say), where it is, and how it is marked."""
+    same = world.landmarks_named(instruction.noun_phrase)
+    lm = world.landmarks[instruction.landmark_index]
+    dist = math.hypot(lm.x - world.start_x, lm.y - world.start_y)
+    return (f"ambiguous: {len(same)} are called \"{html.escape(instruction.noun_phrase)}\"; it means the one at "
+            f"x {lm.x:.0f} m, y {lm.y:.0f} m, {dist:.0f} m from the start, drawn with its four sides")
+
+
+def side_help(world, instruction) -> str:
+    """What left, right, front and back mean (gsmn.task.metrics.side_of), for the landmark the text names."""
+    return ("Sides are seen from the start (the white line in the 3D view): **front** faces it, **back** is beyond "
+            f"the {html.escape(instruction.noun_phrase)}, **left** and **right** as you look from there.")
+
+
+def parse_env_id(text) -> int:
+    """The environment id typed in the page: a whole number from 0 to 2^31 - 1; ValueError with a message for people
+    otherwise ("-5" and "abc" are refused, never turned into 0)."""
+    raw = str(text).strip()
+    if not raw.isdigit():
+        raise ValueError(f"the environment id must be a whole number from 0 up (id % 100: 0-69 train, 70-84 test, "
+                         f"85-99 dev), not \"{raw[:40]}\"")
+    value = int(raw)
+    if value > MAX_ENV_ID:
+        raise ValueError(f"the environment id must be at most {MAX_ENV_ID}")
+    return value
+
+
+def instruction_parts(text: str, world) -> tuple[str | None, str | None]:
+    """The side and the landmark name of this world that a (partial) instruction already holds, if any."""
+    from gsmn.task.instructions import SIDES, tokenize
+
+    tokens = tokenize(text or "")
+    side = next((s for s in SIDES if s in tokens), None)
+    joined = " " + " ".join(tokens) + " "
+    names = sorted({lm.noun_phrase for lm in world.landmarks}, key=lambda n: -len(n))
+    name = next((n for n in names if f" {n} " in joined), None)
+    return side, name
+
+
+def suggestions(text: str, world) -> tuple[str, ...]:
+    """The landmark names of this world to offer under the instruction box: those starting with the word being typed
+    (after "of the"), else all of them, sorted."""
+    from gsmn.task.instructions import tokenize
+
+    names = sorted({lm.noun_phrase for lm in world.landmarks})
+    tokens = tokenize(text or "")
+    tail = text.rstrip() == text and tokens and not text.endswith(" ")
+    if tail:
+        for k in (2, 1):  # "palm t" -> "palm tree"
+            prefix = " ".join(tokens[-k:])
+            matching = [n for n in names if n.startswith(prefix) and n != prefix]
+            if matching:
+                return tuple(matching)
+    return tuple(names)
+
+
+def compose_instruction(text: str, world, side: str | None = None, name: str | None = None) -> str:
+    """The template "go to the {side} side of the {name}" filled from what is typed, with `side` or `name` (a chip
+    or a landmark clicked in the scene) put in; a part not known yet stays a placeholder word the parser names."""
+    from gsmn.task.instructions import TEMPLATE
+
+    typed_side, typed_name = instruction_parts(text, world)
+    return TEMPLATE.format(side=side or typed_side or "left", noun_phrase=name or typed_name or
+                           sorted({lm.noun_phrase for lm in world.landmarks})[0])
+
+
 def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     """The outcome, plainly: success, distances, steps, how it ended, whether a failure flew through the success
     region, the final STOP probability."""
     r = episode.result
     if episode.status != FINISHED or r is None:
-        return f"### Stopped early\nEpisode {episode.id} {episode.status} after {len(episode.steps)} steps." \
+        n = len(episode.steps)
+        where = f"at step {n - 1}, the timeline's last" if n else "before its first step"
+        return f"#### Stopped early\nEpisode {episode.id} {episode.status} {where}." \
             + (f" {html.escape(episode.error)}" if episode.error else "")
     instruction = episode.task.instruction
     verdict = "Success" if r.success else "Failure"
@@ -79,18 +170,26 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     region = "inside" if r.landmark_success else "outside"
     stop = f"{r.stop_probability:.2f}" if r.stop_probability is not None else "n/a (no model)"
     note = ambiguity_note(episode)
-    ambiguous = f"| instruction | {note} |\n" if note else ""
+    ambiguous = f"| ambiguous | {note} |\n" if note else ""
     passed = "" if r.success else f"| success region | {region_passage(episode, success_radius)} |\n"
-    return (f"### <span style='color:{colour}'>{verdict}</span>\n"
+    return (f"#### Episode {episode.id}: <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
             f"| distance to goal | **{r.goal_distance:.1f} m** |\n"
             f"| distance to the {html.escape(instruction.noun_phrase)} | {r.landmark_distance:.1f} m ({region} the "
             f"{success_radius:g} m region) |\n"
-            f"| quadrant | stopped **{r.final_side}**, asked **{instruction.side}** |\n"
+            f"| quadrant | {quadrant_text(r, instruction.side)} |\n"
             f"{passed}"
             f"{ambiguous}"
             f"| P(stop) at the end | {stop} |\n")
+
+
+def quadrant_text(r, asked: str) -> str:
+    """Where it ended around the landmark, and the side asked: "stopped" only when it said STOP."""
+    if r.stopped:
+        return f"stopped **{r.final_side}**, asked **{asked}**"
+    where = "" if r.landmark_success else ", outside the region"
+    return f"ended **{r.final_side}**{where} without a STOP, asked **{asked}**"
 
 
 def steps_in_region(episode: Episode, success_radius: float = 6.0) -> list[int]:
@@ -149,11 +248,25 @@ def whatif_markdown(g: Grounding, record: StepRecord) -> str:
             f"{1000 * g.seconds:.1f} ms on the map already built; gold marks its goal and quadrant.")
 
 
+TIMELINE_PX = 130.0  # the timeline slider's track in the 330-pixel control panel (measured in Chromium)
+MARK_CHAR_PX = 4.2  # a character of a mark's label (viser's slider marks: 34 px for "in region")
+MARK_GAP_PX = 4.0
+
+
+def marks_clash(a: tuple[int, str | None], b: tuple[int, str | None], last: int) -> bool:
+    """Whether two labelled marks, each centred on its step, would print over each other on the slider."""
+    if a[1] is None or b[1] is None:
+        return False
+    apart = abs(a[0] - b[0]) / max(last, 1) * TIMELINE_PX
+    return apart < MARK_CHAR_PX * (len(a[1]) + len(b[1])) / 2 + MARK_GAP_PX
+
+
 def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple[int, str | None], ...]:
     """Marks on the timeline: the ends, the first step inside the success region (where a STOP would have
-    succeeded), and the first step where the model's P(stop) passed 0.5. Labels closer than 8 % of the timeline
-    would print over each other: two such inner marks share one label, and an end beside an inner mark keeps
-    its tick without its number (label None; the step box beside the slider shows it)."""
+    succeeded), and the first step where the model's P(stop) passed 0.5. Labels are centred on their step, so
+    two whose text would meet on the slider (`marks_clash`, from the labels' widths) cannot both print: two
+    inner marks share one label, and an end beside an inner label keeps its tick without its number (label
+    None; the step box beside the slider shows it)."""
     steps = list(episode.steps)
     last = max(len(steps) - 1, 1)
     inside = steps_in_region(episode, success_radius)
@@ -161,12 +274,55 @@ def timeline_marks(episode: Episode, success_radius: float = 6.0) -> tuple[tuple
     inner = [(t, label) for t, label in ((inside[0] if inside else None, "in region"), (stop, "P(stop)>0.5"))
              if t is not None and 0 < t < last]
     inner.sort(key=lambda mark: mark[0])  # stable: at one step, "in region" first
-    near = max(1.0, 0.08 * last)
-    if len(inner) == 2 and inner[1][0] - inner[0][0] < near:
+    if len(inner) == 2 and marks_clash(inner[0], inner[1], last):
         (a, first), (b, second) = inner
         inner = [(a, f"{first}, {second}")] + ([(b, None)] if b != a else [])
-    ends = [(t, None if any(abs(t - u) < near for u, _ in inner) else str(t)) for t in (0, last)]
+    ends = []
+    for t in (0, last):
+        mark = (t, str(t))
+        ends.append((t, None) if any(marks_clash(mark, m, last) or m[0] == t for m in inner) else mark)
     return tuple(sorted(ends + inner, key=lambda mark: mark[0]))
+
+
+ACTIONS_SERIES = (
+    {"label": "step"},
+    {"label": "v (m/s)", "stroke": "#2870f5", "width": 2},
+    {"label": "omega (rad/s)", "stroke": "#e08020", "width": 2},
+    {"label": "P(stop)", "stroke": "#d03030", "width": 2, "dash": [4, 3]},
+    {"label": "STOP at 0.5", "stroke": "#888888", "width": 1, "dash": [2, 4]},
+    {"label": "in success region", "stroke": "rgba(60,200,90,0)", "width": 0, "fill": "rgba(60,200,90,0.22)",
+     "scale": "band", "spanGaps": False},
+    {"label": "shown step", "stroke": "#222222", "width": 2, "scale": "band", "spanGaps": False},
+)
+ACTIONS_SCALES = {"x": {"time": False}, "band": {"auto": False, "range": (0.0, 1.0)}}
+ACTIONS_AXES = ({"label": "step"}, {"label": "m/s, rad/s, P(stop)"})
+CURSOR_HALF_WIDTH = 1e-3  # steps: the cursor is drawn as a spike over this much of the x axis
+
+
+def actions_data(episode: Episode, cursor: int, success_radius: float = 6.0) -> tuple[np.ndarray, ...]:
+    """The Actions plot's columns (`ACTIONS_SERIES`): v, omega and the P(stop) that decided each step, the 0.5 STOP
+    line, a band over the steps inside the success region, and the shown step as a vertical line.
+
+    uPlot draws series over one shared x, so the cursor is a spike (0, 1, 0 on its own 0-1 scale) over two extra x
+    values just either side of the cursor's step, where the other series repeat that step's values."""
+    steps = list(episode.steps)
+    n = len(steps)
+    x = np.arange(n, dtype=np.float64)
+    v = np.array([s.v for s in steps], np.float64)
+    omega = np.array([s.omega for s in steps], np.float64)
+    stop = np.array([np.nan if (p := s.decisive_stop_probability) is None else p for s in steps], np.float64)
+    band = np.full(n, np.nan)
+    band[steps_in_region(episode, success_radius)] = 1.0
+    t = max(0, min(cursor, n - 1))
+    at = np.array([t, t + 1])  # insert before t and after it
+    xs = np.insert(x, at, (t - CURSOR_HALF_WIDTH, t + CURSOR_HALF_WIDTH))
+
+    def spread(column: np.ndarray) -> np.ndarray:
+        return np.insert(column, at, (column[t], column[t]))
+
+    line = np.full(len(xs), np.nan)
+    line[t:t + 3] = (0.0, 1.0, 0.0)
+    return xs, spread(v), spread(omega), spread(stop), np.full(len(xs), 0.5), spread(band), line
 
 
 def inspector_markdown(report: CellReport | None, step: int) -> str:
@@ -189,11 +345,17 @@ def cell_marks_html(cells: list[tuple[int, int, tuple[int, int, int]]], size: in
                    for r, c, colour in cells if 0 <= r < size and 0 <= c < size)
 
 
+# On a short screen (1280 x 800) the camera and the four map panels must fit the panel's height with the tab bar
+# and the readout: the camera at most 26 % of the window's height, each map (a square) at most 20 %.
+CAMERA_MAX_HEIGHT, MAP_MAX_HEIGHT = "26vh", "20vh"
+
+
 def camera_html(jpeg: bytes) -> str:
-    """The camera panel: the recorded JPEG (256 x 144), scaled to the panel's width with its pixels sharp."""
+    """The camera panel: the recorded JPEG (256 x 144), scaled to the panel's width (at most CAMERA_MAX_HEIGHT
+    high) with its pixels sharp."""
     return (f'<div style="padding-right:10px"><img class="gsmn-camera" '
             f'src="data:image/jpeg;base64,{base64.b64encode(jpeg).decode("ascii")}" '
-            f'style="{PIXELATED};border-radius:3px"/></div>')
+            f'style="{PIXELATED};max-height:{CAMERA_MAX_HEIGHT};object-fit:contain;border-radius:3px"/></div>')
 
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
@@ -217,9 +379,11 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
         if whatif_text and name in WHATIF_LAYERS:
             title += " · what-if"
         orient = ORIENTATIONS[layer.frame]
-        cells.append(f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">{html.escape(title)}</div>'
-                     f'<div style="position:relative;border-radius:3px;overflow:hidden">'
-                     f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED}" '
+        box = f"position:relative;border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1"
+        cells.append(f'<div><div style="font-weight:600;font-size:12px;line-height:1.2;margin-bottom:2px">'
+                     f'{html.escape(title)}</div>'
+                     f'<div style="{box}">'
+                     f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED};height:100%" '
                      f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
     caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
                f"cells; white: the drone's cell, red: the goal.</div>")

@@ -26,11 +26,21 @@ COUNTERFACTUAL_RGB = (245, 190, 30)
 MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the texture's linear filtering
 LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other layer: just below the semantic map
 OTHER_LAYER_HEIGHT = 0.02
+SIDES_HEIGHT = 0.1  # the four sides drawn while an instruction is typed: above every layer
+WHATIF_QUADRANT_HEIGHT = 0.018  # not at OTHER_LAYER_HEIGHT: two surfaces at one height fight for depth
 NORTH_UP = (0.0, 1.0, 0.0, 0.0)  # half-turn about x: image row 0 (local -y) to world +y (north)
 TASK_PARTS = ("region", "ring", "quadrant", "goal", "goal_label", "demo")
-# The 3D view's first camera: over the field from beyond its south-west corner (viser's vertical field of view).
-DEFAULT_CAMERA = {"position": (0.0, -13.0, 23.0), "look_at": (15.0, 13.5, 0.0), "up": (0.0, 0.0, 1.0),
+# The 3D view's first camera: over the field from beyond the middle of its south edge (viser's vertical field of
+# view), so that all four corners, where episodes start, fit a canvas down to 0.64 wide per unit of height (1280 x
+# 800 between the side panels) with the drone's frustum; from beyond the south-west corner the south-east start
+# corner and the drone were cut off at the right edge.
+DEFAULT_CAMERA = {"position": (15.0, -20.0, 32.0), "look_at": (15.0, 12.0, 0.0), "up": (0.0, 0.0, 1.0),
                   "fov": math.radians(75.0)}
+# The depth range. viser's own (0.01 to 1000 m) leaves a 24-bit depth buffer about 1 cm of resolution at 40 m,
+# which is where the field is seen from: the ground's stacked surfaces (field, grid, lakes, region, the map layers
+# 2 cm apart) fought for depth seen from near top-down, one triangle of a layer showing over another. From 0.5 m
+# it is 0.2 mm, and nothing is looked at from closer than the drone's frustum.
+CAMERA_NEAR, CAMERA_FAR = 0.5, 400.0
 LABEL_GAP = 0.6  # m from a landmark's top to its label
 LABEL_STEP = 0.5  # m a label rises at a time to clear another
 LABEL_MAX_RISE = 8.0
@@ -54,8 +64,11 @@ def _rgb(rgba: tuple[float, ...]) -> tuple[int, int, int]:
     return tuple(int(round(255 * c)) for c in rgba[:3])
 
 
-def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetModel, ...]) -> None:
-    """(Re)draw field, lakes and landmarks under /world; replaces what was there."""
+def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetModel, ...], generation: int = 0) -> str:
+    """(Re)draw field, lakes and landmarks under /world; replaces what was there. Returns the folder the landmarks
+    are under: a new name each `generation`, since a landmark drawn under the name another world's landmark had
+    just been removed from sometimes never showed in the page (viser culls a pending removal and a creation of one
+    name against each other; seen in environment 76 after 70: the cone's label without its mesh)."""
     by_name = {m.name: m for m in catalogue}
     L = world.field_size
     if _has(scene, "/world"):
@@ -69,9 +82,11 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
         verts, faces = _fan(np.zeros(2), lake.radius_x, lake.radius_y, 0.0, 2 * math.pi, 48, 0.005)
         scene.add_mesh_simple(f"/world/lake_{i}", verts, faces, color=(51, 107, 191), wxyz=yaw_wxyz(lake.yaw),
                               position=(lake.x, lake.y, 0.0), cast_shadow=False)
+    landmarks = f"/world/landmarks_{generation}"
+    scene.add_frame(landmarks, show_axes=False)
     for i, lm in enumerate(world.landmarks):
         model = by_name[lm.model]
-        frame = f"/world/landmark_{i}"
+        frame = f"{landmarks}/landmark_{i}"
         scene.add_frame(frame, show_axes=False, wxyz=yaw_wxyz(lm.yaw), position=(lm.x, lm.y, 0.0))
         for k, part in enumerate(model.parts):
             scene.add_mesh_simple(f"{frame}/part_{k}", part.vertices, part.faces, color=_rgb(part.rgba),
@@ -80,10 +95,11 @@ def draw_world(scene: viser.SceneApi, world: WorldSpec, catalogue: tuple[AssetMo
     heights = label_heights([(lm.x, lm.y, top) for lm, top in zip(world.landmarks, tops, strict=True)],
                             [lm.noun_phrase for lm in world.landmarks])
     for i, (lm, top, z) in enumerate(zip(world.landmarks, tops, heights, strict=True)):
-        scene.add_label(f"/world/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, z), anchor="bottom-center")
+        scene.add_label(f"{landmarks}/label_{i}", lm.noun_phrase, position=(lm.x, lm.y, z), anchor="bottom-center")
         if z > top + LABEL_GAP + 1e-6:  # raised to clear another label: a thin stem says whose it is
-            scene.add_line_segments(f"/world/label_stem_{i}", np.array([[[lm.x, lm.y, top + 0.1], [lm.x, lm.y, z]]]),
-                                    colors=(90, 90, 90), line_width=1.5)
+            stem = np.array([[[lm.x, lm.y, top + 0.1], [lm.x, lm.y, z]]])
+            scene.add_line_segments(f"{landmarks}/label_stem_{i}", stem, colors=(90, 90, 90), line_width=1.5)
+    return landmarks
 
 
 def label_box(point: tuple[float, float, float], text: str, camera: dict = DEFAULT_CAMERA
@@ -145,13 +161,23 @@ def _fan(centre: np.ndarray, rx: float, ry: float, start: float, end: float, n: 
     return verts, faces
 
 
-def quadrant_angles(world: WorldSpec, instruction: Instruction) -> tuple[float, float]:
-    """The success quadrant of an instruction around its landmark as (start, end) angles, counter-clockwise
-    (gsmn.task.metrics.side_of: back around d = landmark - start, front around -d, left counter-clockwise)."""
-    lm = world.landmarks[instruction.landmark_index]
+SIDE_TURN = {"back": 0.0, "front": math.pi, "left": math.pi / 2, "right": -math.pi / 2}
+SIDES_RGB = {"left": (80, 150, 230), "right": (230, 120, 60), "front": (200, 200, 80), "back": (170, 90, 200)}
+SIDE_PARTS = ("from_start", *(f"{side}{part}" for side in SIDE_TURN for part in ("", "_label")))
+
+
+def side_angles(world: WorldSpec, landmark_index: int, side: str) -> tuple[float, float]:
+    """One side's quadrant around a landmark as (start, end) angles, counter-clockwise (gsmn.task.metrics.side_of:
+    back around d = landmark - start, front around -d, left counter-clockwise)."""
+    lm = world.landmarks[landmark_index]
     d = math.atan2(lm.y - world.start_y, lm.x - world.start_x)
-    centre = d + {"back": 0.0, "front": math.pi, "left": math.pi / 2, "right": -math.pi / 2}[instruction.side]
+    centre = d + SIDE_TURN[side]
     return centre - math.pi / 4, centre + math.pi / 4
+
+
+def quadrant_angles(world: WorldSpec, instruction: Instruction) -> tuple[float, float]:
+    """The success quadrant of an instruction around its landmark as (start, end) angles, counter-clockwise."""
+    return side_angles(world, instruction.landmark_index, instruction.side)
 
 
 def _segments(points: np.ndarray) -> np.ndarray:
@@ -191,11 +217,20 @@ class SceneView:
         self.body = None
         self.world: WorldSpec | None = None
         self.show_task = True
+        self.generation = 0  # of the landmarks drawn (`draw_world`)
 
-    def draw_world(self, world: WorldSpec, on_ground_click=None) -> None:
-        """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field."""
-        draw_world(self.scene, world, self.catalogue)
+    def draw_world(self, world: WorldSpec, on_ground_click=None, on_landmark_click=None) -> None:
+        """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field,
+        `on_landmark_click(name)` with the name of a landmark clicked."""
+        self.generation += 1
+        landmarks = draw_world(self.scene, world, self.catalogue, self.generation)
         self.world = world
+        if on_landmark_click is not None:
+            handles = self.scene._handle_from_node_name
+            for i, lm in enumerate(world.landmarks):
+                for name, handle in list(handles.items()):
+                    if name.startswith(f"{landmarks}/landmark_{i}/part_"):
+                        handle.on_click(lambda _, phrase=lm.noun_phrase: on_landmark_click(phrase))
         if on_ground_click is not None:
             field = self.scene._handle_from_node_name.get("/world/field")
 
@@ -230,7 +265,7 @@ class SceneView:
             self.scene.add_line_segments(f"{prefix}/ring", _segments(ring), (255, 255, 255), thickness=0.1,
                                          visible=self.show_task)
         a0, a1 = quadrant_angles(world, instruction)
-        verts, faces = _fan(centre, r, r, a0, a1, 16, 0.016 if prefix == "/task" else 0.02)
+        verts, faces = _fan(centre, r, r, a0, a1, 16, 0.016 if prefix == "/task" else WHATIF_QUADRANT_HEIGHT)
         self.scene.add_mesh_simple(f"{prefix}/quadrant", verts, faces, color=rgb, opacity=0.6, cast_shadow=False,
                                    receive_shadow=False, visible=self.show_task)
         self.scene.add_cylinder(f"{prefix}/goal", radius=0.25, height=2.0, color=rgb if prefix != "/task" else DEMO_RGB,
@@ -243,6 +278,31 @@ class SceneView:
             points = np.column_stack([path, np.full(len(path), 0.1)])
             self.scene.add_line_segments(f"{prefix}/demo", _segments(points), DEMO_RGB, thickness=0.18,
                                          visible=self.show_task)
+
+    def draw_sides(self, world: WorldSpec | None, instruction: Instruction | None = None) -> None:
+        """While an instruction is typed: the four sides around the landmark it names, each labelled, the one asked
+        stronger, and the line from the start that they are taken from (left and right as seen from the start);
+        None clears them. This also marks which landmark an ambiguous name means."""
+        for name in SIDE_PARTS:
+            if _has(self.scene, f"/sides/{name}"):
+                self.scene.remove_by_name(f"/sides/{name}")
+        if world is None or instruction is None or world != self.world:
+            return
+        lm = world.landmarks[instruction.landmark_index]
+        r = self.success_radius
+        self.scene.add_line_segments("/sides/from_start", np.array([[[world.start_x, world.start_y, 0.2],
+                                                                     [lm.x, lm.y, 0.2]]], np.float32),
+                                     (255, 255, 255), thickness=0.15)
+        for side in SIDE_TURN:
+            a0, a1 = side_angles(world, instruction.landmark_index, side)
+            verts, faces = _fan(np.array([lm.x, lm.y]), r, r, a0 + 0.03, a1 - 0.03, 12, SIDES_HEIGHT)
+            asked = side == instruction.side
+            self.scene.add_mesh_simple(f"/sides/{side}", verts, faces, color=SIDES_RGB[side],
+                                       opacity=0.75 if asked else 0.35, cast_shadow=False, receive_shadow=False)
+            mid = (a0 + a1) / 2
+            self.scene.add_label(f"/sides/{side}_label", side.upper() if asked else side,
+                                 position=(lm.x + 0.7 * r * math.cos(mid), lm.y + 0.7 * r * math.sin(mid), 0.4),
+                                 anchor="center")
 
     def draw_counterfactual(self, instruction: Instruction | None) -> None:
         self.draw_task(instruction, None, prefix="/whatif", rgb=COUNTERFACTUAL_RGB)

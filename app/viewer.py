@@ -44,21 +44,31 @@ from app.commands import (
 )
 from app.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
 from app.panels import (
+    ACTIONS_AXES,
+    ACTIONS_SCALES,
+    ACTIONS_SERIES,
+    actions_data,
     camera_html,
+    compose_instruction,
     error_html,
     inspector_markdown,
     maps_html,
     other_side,
+    parse_env_id,
     placeholder_html,
     readout_markdown,
     result_markdown,
+    side_help,
     status_line,
+    suggestions,
     timeline_marks,
     whatif_markdown,
+    which_landmark,
+    world_summary,
 )
 from app.recording import Episode, StepRecord
 from app.runner import Runner
-from app.scene import DEFAULT_CAMERA, SceneView
+from app.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
 from app.viewer_events import (
     Close,
     CursorMoved,
@@ -71,6 +81,7 @@ from app.viewer_events import (
     OptionsChanged,
     PlaybackPressed,
     ShowAnswered,
+    SidesTyped,
     StartAnswered,
     StateChanged,
     StepRecorded,
@@ -79,7 +90,7 @@ from app.viewer_events import (
     WorldChanged,
 )
 from gsmn.model.grid import world_cell
-from gsmn.task.instructions import InstructionError, parse_instruction
+from gsmn.task.instructions import SIDES, InstructionError, parse_instruction
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
 
 log = logging.getLogger("gsmn.dashboard")
@@ -105,7 +116,7 @@ class _View:
     replaying: bool = False
     counterfactual: str | None = None  # the what-if instruction while that mode is on
     inspected: tuple[float, float] | None = None  # a ground point clicked to inspect its map cell
-    plot_steps: int = -1  # steps in the plot, to redraw it only when it grows
+    plot_steps: tuple[int, int] = (-1, -1)  # (steps, cursor) in the plot, to redraw it only when either moves
 
 
 class Viewer(RunnerListener):
@@ -139,6 +150,7 @@ class Viewer(RunnerListener):
         camera = server.initial_camera  # over the field from beyond its south-west corner
         camera.position, camera.look_at, camera.up, camera.fov = (DEFAULT_CAMERA[k] for k in (
             "position", "look_at", "up", "fov"))
+        camera.near, camera.far = CAMERA_NEAR, CAMERA_FAR
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)
@@ -172,33 +184,40 @@ class Viewer(RunnerListener):
         gui.configure_theme(dark_mode=False, show_logo=False, brand_color=(40, 110, 245))
         gui.main_panel.dock_left()
         gui.main_panel.set_width(330)
-        gui.add_markdown("## GSMN dashboard\nFollow an instruction with the Grounded Semantic Mapping Network "
+        gui.add_markdown("**GSMN dashboard**: follow an instruction with the Grounded Semantic Mapping Network "
                          "(Blukis et al., RSS 2018) and watch what it maps, grounds and plans.")
         self.checkpoint_note = gui.add_markdown(self._checkpoint_text())
 
         with gui.add_folder("Episode"):
-            self.env_number = gui.add_number("Environment id", env_id, min=0, step=1,
-                                             hint="id % 100: 0-69 train, 70-84 test, 85-99 dev")
+            # a text box, not a number box: the browser's number box turns "-5" or "abc" silently into 0
+            self.env_number = gui.add_text("Environment id", str(env_id),
+                                           hint="a whole number; id % 100: 0-69 train, 70-84 test, 85-99 dev")
             self.split = gui.add_dropdown("Split", SPLITS, initial_value=split_of(env_id))
             self.env_buttons = gui.add_button_group("World", ("Show", "Random in split"))
             choices = self._policy_choices()
+            self._default_choice = choices[0]
             self.policy = gui.add_dropdown("Policy", choices, initial_value=choices[0],
                                            hint="the expert flies with the model watching, when there is one")
             self.mirror = gui.add_checkbox("Mirror ensemble", False,
                                            hint="the model also flies the mirror image of each step (left and right "
                                                 "swapped) and the two actions are averaged; the maps shown are the "
                                                 "unmirrored copy's")
-            self.instruction = gui.add_text("Instruction", "", hint="e.g. go to the left side of the barrel")
+            # no hover hint: it covered the row above; the note under the box and the word chips help instead
+            self.instruction = gui.add_text("Instruction", "")
             self.instruction_note = gui.add_markdown("")
+            # the template's words and this world's landmark names, as buttons that fill the instruction in
+            self.side_chips = gui.add_button_group("Sides", SIDES)
+            self.name_chips = gui.add_button_group("Landmarks", ("(none)",))
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
+            # the result right under the status: on a 1280 x 800 screen it shows without scrolling
+            self.result = gui.add_markdown("")
         with gui.add_folder("Playback"):
             self.playback = gui.add_button_group("Control", ("Play", "Pause", "Step", "Stop"))
             self.timeline = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0)
             self.follow = gui.add_checkbox(FOLLOW_LABEL, True)
             self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0])
-        self.result = gui.add_markdown("")
         with gui.add_folder("Counterfactual: another instruction, same map"):
             self.whatif = gui.add_text("What if", "", hint="grounded on the semantic map at the shown step")
             self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
@@ -219,6 +238,11 @@ class Viewer(RunnerListener):
 
         self.env_buttons.on_click(self._on_env_button)
         self.run_button.on_click(lambda _: self._run(paused=False))
+        self.env_number.on_update(self._on_env_typed)
+        self.side_chips.on_click(lambda e: self._fill_instruction(side=e.target.value))
+        self.name_chips.on_click(lambda e: self._fill_instruction(name=e.target.value))
+        self.policy.on_update(lambda _: self._on_policy())
+        self.whatif.on_update(self._on_whatif_typed)
         self.instruction.on_update(self._on_instruction_typed)
         self.playback.on_click(self._on_playback)
         self.timeline.on_update(self._on_timeline)
@@ -242,21 +266,29 @@ class Viewer(RunnerListener):
             self.inspector = gui.add_markdown("Click the field in the 3D view to inspect a map cell.")
         with panel.add_tab("Actions", viser.Icon.CHART_LINE):
             self.plot = gui.add_uplot(
-                data=(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)),
-                series=({"label": "step"}, {"label": "v (m/s)", "stroke": "#2870f5", "width": 2},
-                        {"label": "omega (rad/s)", "stroke": "#e08020", "width": 2},
-                        {"label": "P(stop)", "stroke": "#d03030", "width": 2, "dash": [4, 3]}),
-                title="Actions flown and the model's STOP probability", aspect=1.4,
-                scales={"x": {"time": False}}, axes=({"label": "step"}, {}))
-            gui.add_markdown("The model's own v and omega are in the readout under the camera when the expert flies.")
+                data=tuple(np.zeros(2) for _ in ACTIONS_SERIES), series=ACTIONS_SERIES,
+                title="Actions flown, P(stop), the shown step", aspect=1.3, scales=ACTIONS_SCALES,
+                axes=ACTIONS_AXES)
+            gui.add_markdown("The black line follows the timeline; green: the steps inside the success region, where "
+                             "a STOP would have succeeded; the model stops when P(stop) passes 0.5. The model's own v "
+                             "and omega are in the readout under the camera when the expert flies.")
         panel.dock_right()
-        panel.set_width(440)
+        panel.set_width(420)
         self.panel = panel
 
     def _checkpoint_text(self) -> str:
-        if self.runner.has_model:
+        """The header's model line: the policy chosen in the Episode panel when it is not the server's default."""
+        if not self.runner.has_model:
+            return f"**No model loaded.** {html.escape(self.runner.checkpoint_message)}"
+        choice = getattr(self, "policy", None)
+        default = getattr(self, "_default_choice", None)
+        if choice is None or choice.value == default:
             return f"**Model:** {html.escape(self.runner.checkpoint_message)}"
-        return f"**No model loaded.** {html.escape(self.runner.checkpoint_message)}"
+        if choice.value == EXPERT_CHOICE:
+            return (f"**Flies:** the expert, the model watching ({html.escape(self.runner.checkpoint_message)})")
+        name = self.checkpoint_of(choice.value)
+        return f"**Flies:** checkpoint **{html.escape(str(name))}** (chosen under Policy; the server loaded " \
+               f"{html.escape(str(default).removeprefix('Model: '))} at start)."
 
     def _policy_choices(self) -> tuple[str, ...]:
         choices = []
@@ -286,17 +318,60 @@ class Viewer(RunnerListener):
     # -- callbacks (viser's thread pool: post commands, enqueue events) -----------------------------------------
     def _on_env_button(self, event: viser.GuiEvent) -> None:
         if event.target.value == "Random in split":
-            self.env_number.value = split_env_ids(self.split.value, 1, start=int(self.rng.integers(0, 100000)))[0]
-        env_id = int(self.env_number.value)
+            self.env_number.value = str(split_env_ids(self.split.value, 1,
+                                                      start=int(self.rng.integers(0, 100000)))[0])
+        env_id = self._env_id()
+        if env_id is None:
+            return
         self._post(ShowEnv(env_id), ShowAnswered)
+
+    def _env_id(self) -> int | None:
+        """The environment id typed, or None with the reason in the status line."""
+        try:
+            env_id = parse_env_id(self.env_number.value)
+        except ValueError as e:
+            self.status.content = error_html(f"**Environment id:** {html.escape(str(e))}")
+            return None
+        return env_id
+
+    def _on_env_typed(self, event: viser.GuiEvent) -> None:
+        if event.client is None:
+            return
+        try:
+            env_id = parse_env_id(self.env_number.value)
+        except ValueError as e:
+            self.status.content = error_html(html.escape(str(e)))
+            return
+        if self.split.value != split_of(env_id):  # the split always names the id's own
+            self.split.value = split_of(env_id)
+        self.instruction_note.content = self._instruction_feedback(self.instruction.value)
+
+    def _fill_instruction(self, side: str | None = None, name: str | None = None) -> None:
+        """A chip or a landmark clicked in the scene: put that side or landmark into the instruction template."""
+        world = self._typed_world()
+        if world is None or name == "(none)":
+            return
+        self.instruction.value = compose_instruction(self.instruction.value, world, side, name)
+        self.instruction_note.content = self._instruction_feedback(self.instruction.value)
+
+    def _set_chips(self, text: str, world) -> None:
+        names = suggestions(text, world) if world is not None else ()
+        options = names or ("(none)",)
+        if tuple(self.name_chips.options) != options:
+            self.name_chips.options = options
+
+    def _on_policy(self) -> None:
+        self.checkpoint_note.content = self._checkpoint_text()
 
     def _run(self, paused: bool) -> None:
         self._clicked_at = time.perf_counter()
         policy, checkpoint = self._policy_of_choice()
         text = self.instruction.value.strip() or None
+        env_id = self._env_id()
+        if env_id is None:
+            return
         self.status.content = "Starting..."
-        self._post(StartEpisode(int(self.env_number.value), text, policy, checkpoint, preempt=True, paused=paused),
-                   StartAnswered)
+        self._post(StartEpisode(env_id, text, policy, checkpoint, preempt=True, paused=paused), StartAnswered)
 
     def _post(self, command, answered: type[ShowAnswered | StartAnswered]) -> Future:
         future = self.runner.post(command)
@@ -308,18 +383,43 @@ class Viewer(RunnerListener):
             return
         self.instruction_note.content = self._instruction_feedback(self.instruction.value)
 
-    def _instruction_feedback(self, text: str) -> str:
-        if not text.strip():
-            return "Empty: the environment's own instruction will be flown."
+    def _typed_world(self):
+        """The world of the environment id typed (the one shown when it is that one); None for a bad id."""
         try:
-            env_id = int(self.env_number.value)
-            world = self.world_shown.world if self.world_shown and self.world_shown.world.env_id == env_id \
-                else world_for_env(env_id, self.runner.config.world)
+            env_id = parse_env_id(self.env_number.value)
+        except ValueError:
+            return None
+        if self.world_shown and self.world_shown.world.env_id == env_id:
+            return self.world_shown.world
+        episode = self.view.episode
+        if episode is not None and episode.task.world.env_id == env_id:
+            return episode.task.world
+        return world_for_env(env_id, self.runner.config.world)
+
+    def _instruction_feedback(self, text: str) -> str:
+        """The note under the instruction box (checked as it is typed), the word chips under it, the Run button's
+        colour (green only when it can be flown) and the sides drawn around the landmark named."""
+        world = self._typed_world()
+        self._set_chips(text, world)
+        if not text.strip():
+            self._can_fly(True, None)
+            return "Empty: the environment's own instruction will be flown."
+        if world is None:
+            self._can_fly(False, None)
+            return error_html("**Cannot fly this:** the environment id is not a whole number from 0 up.")
+        try:
             instruction = parse_instruction(text, world)
-        except (InstructionError, ValueError) as e:
+        except InstructionError as e:
+            self._can_fly(False, None)
             return error_html(f"**Cannot fly this:** {html.escape(str(e))}")
-        note = " (ambiguous: several landmarks share this name; the first is meant)" if instruction.ambiguous else ""
-        return f"Understood: the **{instruction.side}** side of the **{instruction.noun_phrase}**{note}."
+        self._can_fly(True, (world, instruction))
+        note = f" ({which_landmark(world, instruction)})" if instruction.ambiguous else ""
+        return (f"Understood: the **{instruction.side}** side of the **{instruction.noun_phrase}**{note}. "
+                + side_help(world, instruction))
+
+    def _can_fly(self, ok: bool, sides) -> None:
+        self.run_button.color = "green" if ok else "gray"
+        self._events.put(SidesTyped(sides))
 
     def _on_playback(self, event: viser.GuiEvent) -> None:
         self._events.put(PlaybackPressed(event.target.value))
@@ -338,6 +438,25 @@ class Viewer(RunnerListener):
 
     def _on_ground_click(self, x: float, y: float) -> None:
         self._events.put(GroundClicked(x, y))
+
+    def _on_landmark_click(self, name: str) -> None:
+        """A landmark clicked in the 3D view goes into the instruction (the rest of it kept)."""
+        self._fill_instruction(name=name)
+
+    def _on_whatif_typed(self, event: viser.GuiEvent) -> None:
+        """The what-if box is checked as it is typed, like the instruction box."""
+        if event.client is None:
+            return
+        text, episode = self.whatif.value.strip(), self.view.episode
+        if not text or episode is None:
+            return
+        try:
+            instruction = parse_instruction(text, episode.task.world)
+        except InstructionError as e:
+            self.whatif_note.content = error_html(f"**Cannot ground this:** {html.escape(str(e))}")
+            return
+        self.whatif_note.content = (f"Understood: the **{instruction.side}** side of the "
+                                    f"**{instruction.noun_phrase}**. Press **Ground**.")
 
     def _on_whatif(self, event: viser.GuiEvent) -> None:
         if event.target.value == "Clear":
@@ -437,6 +556,13 @@ class Viewer(RunnerListener):
             case GroundClicked(x, y):
                 v.inspected = (x, y)
                 return True
+            case SidesTyped(sides):
+                with self.server.atomic():
+                    if sides:
+                        self.scene.draw_sides(*sides)
+                    else:
+                        self.scene.draw_sides(None)
+                return False
             case TaskVisibility():
                 with self.server.atomic():
                     self.scene.set_task_visible(bool(self.show_task.value))
@@ -446,10 +572,10 @@ class Viewer(RunnerListener):
     def _command_answered(self, future: Future, started: bool) -> bool:
         try:
             result = future.result()
-        except RunnerError as e:
+        except RunnerError as e:  # said once, in the status line; the result below is labelled with its episode
             self.status.content = error_html(f"**Not started:** {html.escape(str(e))}")
             if started:
-                self.instruction_note.content = self.status.content
+                self.instruction_note.content = ""
             return False
         except Exception as e:  # noqa: BLE001
             self.status.content = f"**Error:** {html.escape(str(e))}"
@@ -465,7 +591,7 @@ class Viewer(RunnerListener):
         v.episode, v.cursor, v.follow, v.replaying = None, 0, True, False
         with self.server.atomic():
             if self.scene.world != shown.world:
-                self.scene.draw_world(shown.world, self._on_ground_click)
+                self.scene.draw_world(shown.world, self._on_ground_click, self._on_landmark_click)
                 self.scene.mark_cell(None, 1.0)
                 v.inspected = None
             self.scene.clear_layers()
@@ -476,15 +602,17 @@ class Viewer(RunnerListener):
             self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)
         self.camera.content = camera_html(jpeg_bytes(shown.image))
         world = shown.world
-        self.env_number.value = world.env_id
+        with self.server.atomic():
+            self.scene.draw_sides(None)
+        self.env_number.value = str(world.env_id)
         self.split.value = world.split
         if task is not None:
             self.instruction.value = task.instruction.text
             self.whatif.value = other_side(task.instruction.text, task.instruction.side)
-        names = ", ".join(sorted({lm.noun_phrase for lm in world.landmarks}))
         self.instruction_note.content = ""
-        self.status.content = (f"**Environment {world.env_id}** ({world.split}): {len(world.landmarks)} landmarks "
-                               f"({html.escape(names)}). Press **Run**.")
+        self._set_chips(self.instruction.value, world)
+        self.run_button.color = "green"
+        self.status.content = f"**Environment {world.env_id}** ({world.split}): {world_summary(world)}. Press **Run**."
         self.result.content = ""
         self.readout.content = f"Step 0 of environment {world.env_id}, at the start corner."
         self.maps.content = placeholder_html("Run an episode to see the model's maps, live at every step.")
@@ -492,13 +620,13 @@ class Viewer(RunnerListener):
 
     def _start(self, episode: Episode) -> None:
         v = self.view
-        v.episode, v.cursor, v.follow, v.replaying, v.plot_steps = episode, 0, True, False, -1
+        v.episode, v.cursor, v.follow, v.replaying, v.plot_steps = episode, 0, True, False, (-1, -1)
         self.follow.value = True
         world = episode.task.world
         self.world_shown = None
         with self.server.atomic():
             if self.scene.world != world:
-                self.scene.draw_world(world, self._on_ground_click)
+                self.scene.draw_world(world, self._on_ground_click, self._on_landmark_click)
                 self.scene.mark_cell(None, 1.0)
                 v.inspected = None
             self.scene.clear_path()
@@ -506,9 +634,14 @@ class Viewer(RunnerListener):
             self.scene.draw_counterfactual(None)
         if v.counterfactual is not None:
             self._draw_counterfactual_task(episode, v.counterfactual)
-        self.env_number.value = world.env_id
+        self.env_number.value = str(world.env_id)
         self.split.value = world.split
         self.instruction.value = episode.instruction
+        self.instruction_note.content = ""
+        self._set_chips(episode.instruction, world)
+        self.run_button.color = "green"
+        with self.server.atomic():
+            self.scene.draw_sides(None)
         if v.counterfactual is None:
             self.whatif.value = other_side(episode.instruction, episode.task.instruction.side)
         self.result.content = ""
@@ -584,9 +717,14 @@ class Viewer(RunnerListener):
             return False
         try:
             instruction = parse_instruction(text, episode.task.world)
-        except InstructionError as e:
+        except InstructionError as e:  # refused: the previous what-if maps go, so none is left looking valid
             self.whatif_note.content = error_html(f"**Cannot ground this:** {html.escape(str(e))}")
-            return False
+            if v.counterfactual is None:
+                return False
+            v.counterfactual = None
+            with self.server.atomic():
+                self.scene.draw_counterfactual(None)
+            return True
         v.counterfactual = instruction.text
         self._draw_counterfactual_task(episode, instruction.text)
         return True
@@ -649,7 +787,8 @@ class Viewer(RunnerListener):
             if grounding:
                 maps = {**maps, "relevance_map_w": grounding.relevance_w, "goal_map_w": grounding.goal_w,
                         "goal_map_r": grounding.goal_r}
-            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value)
+            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value,
+                                tuple(lm.noun_phrase for lm in episode.task.world.landmarks))
         positions = np.array([s.position for s in episode.steps[: t + 1]])
         opacity = float(self.opacity.value)
         with self.server.atomic():
@@ -670,9 +809,9 @@ class Viewer(RunnerListener):
             self.whatif_note.content = error_html(html.escape(counterfactual))
         self._inspect(episode, record, grounding)
         self._set_timeline(t, n - 1)
-        if n != v.plot_steps and (not episode.live or n - v.plot_steps >= 5 or n < 5):
-            self._update_plot(episode)
-            v.plot_steps = n
+        if (n, t) != v.plot_steps:  # the cursor follows the timeline
+            self._update_plot(episode, t)
+            v.plot_steps = (n, t)
         self.frames_drawn += 1
         if self._clicked_at is not None and episode.started is not None and episode.started > self._clicked_at:
             self.click_to_frame.append(time.perf_counter() - self._clicked_at)  # the server's share of it
@@ -708,10 +847,5 @@ class Viewer(RunnerListener):
             # viser 1.1 takes marks only at creation; its handle keeps them in the `_marks` prop
             self.timeline._marks = tuple(GuiSliderMark(value=float(v), label=label) for v, label in marks)
 
-    def _update_plot(self, episode: Episode) -> None:
-        steps = episode.steps
-        x = np.arange(len(steps), dtype=np.float64)
-        v = np.array([s.v for s in steps], np.float64)
-        omega = np.array([s.omega for s in steps], np.float64)
-        stop = np.array([np.nan if (p := s.decisive_stop_probability) is None else p for s in steps], np.float64)
-        self.plot.data = (x, v, omega, stop)
+    def _update_plot(self, episode: Episode, t: int) -> None:
+        self.plot.data = actions_data(episode, t, self.runner.config.task.success_radius)

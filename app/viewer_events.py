@@ -110,3 +110,10 @@ class TaskVisibility(Event):
 @dataclass(frozen=True)
 class Close(Event):
     """The viewer is closing: stop the UI thread."""
+
+
+@dataclass(frozen=True, eq=False)
+class SidesTyped(Event):
+    """A typed instruction names a landmark (world, instruction): draw its four sides; None clears them."""
+
+    sides: tuple | None

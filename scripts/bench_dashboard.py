@@ -66,13 +66,19 @@ CLICK_TO_WHATIF = """async () => {
 
 COUNT_FRAMES = """() => {
     window.__frames = 0;
-    let last = '';
+    window.__camera = 0;  // camera images received (the camera panel's src changing)
+    let last = '', image = '';
     const target = document.querySelector('.gsmn-maps').parentElement;
     new MutationObserver(() => {
         const m = document.querySelector('.gsmn-maps');
         const key = m ? m.dataset.episode + '/' + m.dataset.step : '';
         if (key !== last) { last = key; window.__frames += 1; }
     }).observe(target, {childList: true, subtree: true});
+    const camera = document.querySelector('img.gsmn-camera').closest('.mantine-Paper-root, div').parentElement;
+    new MutationObserver(() => {
+        const img = document.querySelector('img.gsmn-camera');
+        if (img && img.src !== image) { image = img.src; window.__camera += 1; }
+    }).observe(camera, {childList: true, subtree: true, attributes: true});
 }"""
 
 
@@ -148,7 +154,7 @@ def main() -> int:
             dismiss_notifications(page)
 
             # 1. Run -> first frame, and whole live episodes with the page open
-            first_frame_ms, steps_per_second, page_fps, drawn = [], [], [], []
+            first_frame_ms, steps_per_second, page_fps, drawn, camera_fps = [], [], [], [], []
             for _ in range(a.runs):
                 before = {e.id for e in runner.episodes.all()}
                 first_frame_ms.append(page.evaluate(CLICK_TO_FRAME, "Run"))
@@ -159,6 +165,7 @@ def main() -> int:
                 seconds = time.perf_counter() - t0
                 steps_per_second.append(episode.steps_per_second() or 0.0)
                 page_fps.append(page.evaluate("() => window.__frames") / seconds)
+                camera_fps.append(page.evaluate("() => window.__camera") / seconds)
                 drawn.append((dashboard.viewer.frames_drawn - frames0) / max(len(episode.steps), 1))
                 page.wait_for_timeout(500)
             server_ms = [1000 * x for x in dashboard.viewer.click_to_frame[-a.runs:]]
@@ -166,12 +173,17 @@ def main() -> int:
             figures["first_frame_server_ms"] = server_ms
             figures["live_steps_per_second"] = steps_per_second
             figures["page_steps_shown_per_second"] = page_fps
+            figures["page_camera_images_per_second"] = camera_fps
             figures["fraction_of_steps_drawn"] = drawn
             print(f"Run -> first frame in the page (ms): {summary(first_frame_ms)}", flush=True)
             print(f"  of which the server (click callback to frame sent): {summary(server_ms)}", flush=True)
             print(f"live steps/s with the page open:     {summary(steps_per_second)}", flush=True)
             print(f"steps shown per second in the page:  {summary(page_fps)}", flush=True)
+            print(f"camera images per second in the page: {summary(camera_fps)}", flush=True)
             print(f"steps drawn by the viewer:           {summary([100 * d for d in drawn])} %", flush=True)
+            viewer = dashboard.viewer
+            figures["viewer_ms_per_frame"] = 1000 * viewer.render_seconds / max(viewer.frames_drawn, 1)
+            print(f"viewer's drawing per frame drawn:    {figures['viewer_ms_per_frame']:.1f} ms", flush=True)
 
             # 2. counterfactual grounding latency: runner, API round trip, page click -> what-if maps drawn
             last = runner.episodes.all()[-1]

@@ -297,7 +297,9 @@ def test_a_run_folder_says_where_the_run_is(tmp_path):
     assert "starts it again" in run_resume_hint(stopped)
     assert "from iteration 2 of 4" in run_resume_hint(dataclasses.replace(stopped, metrics=[{"iteration": 1}]))
     # the chart's x axis spans the planned iterations from the first point on (uPlot alone gives 0-100)
-    assert curve_scales(None) == {"x": {"time": False}}
+    # before any run, the empty chart spans the form's planned iterations, not uPlot's 0-100 (item 18 of issue 51)
+    assert curve_scales(None, 2)["x"]["range"] == (1.0, 2.0) and curve_scales(None, 5)["x"]["range"] == (1.0, 5.0)
+    assert curve_scales(None, 2)["share"]["range"][0] == 0.0  # the shares have their own 0-1 axis
     assert curve_scales(dataclasses.replace(row, metrics=[{"iteration": 1}]))["x"]["range"] == (1.0, 4.0)
     assert curve_scales(dataclasses.replace(row, settings={"iterations": 1}))["x"]["range"] == (1.0, 2.0)
     assert curve_scales(dataclasses.replace(row, settings={}, metrics=[{"iteration": 7}]))["x"]["range"] == (1.0, 7.0)
@@ -333,7 +335,7 @@ def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
 
 def test_the_pages_text():
     e = episode(1, 0, 73, success=False, goal_distance=14.25, stage="grounding", side="left", landmark="pumpkin")
-    assert episode_label(e) == "▶ 73 ✗ left of the pumpkin · 14.2 m · grounding"
+    assert episode_label(e) == "▶ 73 ✗ failure: left of the pumpkin · 14.2 m · not grounded"
     assert error_summary("its process exited with status 1; its output ends:\nTraceback\n  File x\nValueError: bad") \
         == "its process exited with status 1: ValueError: bad"
     assert error_summary(None) == "" and error_summary("cancelled") == "cancelled"
@@ -376,3 +378,38 @@ def test_the_p_stop_in_the_region_is_the_one_the_policy_acted_on_when_the_file_k
     assert region_stop_p_of({}, [1, 2]) is None  # a baseline's older file: not known
     assert region_stop_p_of(acted, [], recorded) is None and region_stop_p_of(acted, None) is None  # never entered
     assert region_stop_p_of({}, [3, 4], recorded) is None  # steps the recording does not have
+
+
+def test_the_failure_browser_and_fine_tune_tab_read_plainly():
+    """Issue 51, items 10, 17 and 18: successes and failures told apart, sorting, the stage filter named as the bars
+    are, a failure whose attribution and region passage differ saying why, and before/after saying which episodes
+    were trained on."""
+    from app.db import Run
+    from app.jobs_panels import both_readings, episode_colour, sort_rows, stage_title, trained_on_note
+
+    ok = episode(1, 0, 70, success=True, goal_distance=1.0, stage=None, attribution=None)
+    far = episode(1, 1, 71, goal_distance=17.9, stage="goal_or_control")
+    near = episode(1, 2, 72, goal_distance=4.0)
+    assert "✓ success" in episode_label(ok) and "✗ failure" in episode_label(far)
+    assert episode_colour(ok) != episode_colour(far)
+    assert "goal or control" in episode_label(far) and stage_title("goal_or_control") == "goal or control"
+    assert [r.env_id for r in sort_rows([ok, far, near], "distance to goal, far first")] == [71, 72, 70]
+    assert [r.env_id for r in sort_rows([near, ok, far], "environment id")] == [70, 71, 72]
+    assert [r.env_id for r in sort_rows([near, ok], "flown order")] == [72, 70]
+    # environment 72's kind: the goal map at the end is wrong, yet it flew through the region at steps 32-50
+    goal = episode(1, 3, 72, stage="goal", region_steps=list(range(32, 51)),
+                   attribution={"stage": "goal", "reason": "r", "goal_peak_error": 9.5, "perceived": True,
+                                "observed": True, "top_class": "tower", "landmark_class_rank": 1, "grounded": True,
+                                "p_named": 0.7, "goal_right": False, "goal_peak_p": 0.4})
+    both = both_readings(goal)
+    assert "Both readings hold" in both and "9.5 m" in both
+    assert "Both readings hold" in episode_html(goal, "")
+    assert both_readings(dataclasses.replace(goal, region_steps=[])) == ""
+    assert both_readings(dataclasses.replace(goal, stage="control")) == ""  # control: the two already agree
+    run = Run(id=3, status="finished", created=0, started=0, finished=0, settings={"iterations": 2},
+              env_ids=[7, 8], source_evaluation_id=1, init_checkpoint="/c", folder="/f", pid=None, command=None,
+              progress=None, metrics=[], checkpoint="/c3", error=None, cancel_requested=False)
+    c = {"episodes": [{"env_id": 7}, {"env_id": 8}]}
+    assert "trained on: the figures are on its training episodes" in trained_on_note(c, run)
+    assert "1 of these 2" in trained_on_note({"episodes": [{"env_id": 7}, {"env_id": 90}]}, run)
+    assert "held out" in trained_on_note({"episodes": [{"env_id": 75}]}, dataclasses.replace(run, env_ids=None))
