@@ -310,6 +310,9 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None) -> FastAP
                               relevance_probability=np.round(relevance, 4).tolist(),
                               goal_probability=np.round(goal, 4).tolist())
 
+    from app.compare_api import add_compare_routes
+
+    add_compare_routes(app, runner)
     return app
 
 
