@@ -217,3 +217,28 @@ def test_the_http_routes(runner):
     while client.get(f"/api/episodes/{fork_id}").json()["status"] != "finished":
         assert time.monotonic() < deadline
         time.sleep(0.1)
+
+
+def test_truth_layers_and_figures_are_served(runner):
+    from app.api import make_api
+    from app.colors import decode_image
+
+    client = TestClient(make_api(runner))
+    episode = fly(runner, 75, None, "expert")  # the model watches
+    r = client.get(f"/api/episodes/{episode.id}/steps")
+    assert r.status_code == 200
+    body = r.json()
+    figures = [s["truth"] for s in body["steps"]]
+    assert all(f is not None for f in figures) and len(figures) == len(episode.steps)
+    last = figures[-1]
+    assert 0 <= last["perception"] <= 1 and 0 <= last["relevance"] <= 1 and 0 <= last["goal"] <= 1
+    assert set(body["went_wrong"]) == {"perception", "relevance", "goal"}
+    n = episode.steps[0].maps.semantic_w.shape[-1]
+    for layer in ("truth_semantic", "truth_relevance", "truth_goal"):
+        r = client.get(f"/api/episodes/{episode.id}/steps/3/maps/{layer}.png")
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        image = decode_image(r.content)
+        assert image.shape[:2] == (4 * n, 4 * n) and len(np.unique(image.reshape(-1, 3), axis=0)) >= 2
+    assert client.get(f"/api/episodes/{episode.id}/steps/3/maps/truth_nothing.png").status_code == 422
+    truth = client.get(f"/api/episodes/{episode.id}/steps/0/maps/truth_relevance.png").content
+    assert truth == client.get(f"/api/episodes/{episode.id}/steps/3/maps/truth_relevance.png").content
