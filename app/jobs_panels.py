@@ -12,6 +12,7 @@ import numpy as np
 from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
 from app.panels import region_text
 from app.supervisor import resumable
+from app.truth import went_wrong_text
 from gsmn.attribution import STAGE_TITLES, reported_stages
 
 
@@ -124,6 +125,8 @@ def episode_html(r: EpisodeRow, note: str) -> str:
                  ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
                   else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
                                                                     f"goal, P {a['goal_peak_p']:.2f})")]
+        if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.truth)
+            rows.append(("went wrong", went_wrong_text(a["failed_from"], ("<b>", "</b>"))))
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
     verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
                f"{html.escape(STAGE_TITLES.get(stage, stage))}</div>"

@@ -92,4 +92,42 @@ def went_wrong(figures: list[Agreement | None]) -> dict[str, int | None] | None:
     known = [f for f in figures if f is not None]
     if not known:
         return None
-    return first_failures(known)
+    steps = first_failures(known)
+    if all(f.goal is None for f in known):  # no trained goal head: nothing to say
+        del steps["goal"]
+    return steps
+
+
+STAGE_OF_FIGURE = {"perception": "perception", "relevance": "grounding", "goal": "goal"}
+FIGURE_WORDS = {"perception": "perceived", "grounding": "grounded", "goal": "goal map"}
+
+
+def went_wrong_text(steps: dict[str, int | None] | None, bold: tuple[str, str] = ("**", "**")) -> str:
+    """"perceived: right to the end · grounded: wrong from step 23 · goal map: wrong from step 41", keyed by stage
+    (`Attribution.failed_from`) or by figure (`went_wrong`)."""
+    if not steps:
+        return ""
+    parts = []
+    for key, step in steps.items():
+        stage = STAGE_OF_FIGURE.get(key, key)
+        words = FIGURE_WORDS.get(stage, stage)
+        parts.append(f"{words}: right at the end" if step is None else
+                     f"{words}: wrong from step {bold[0]}{step}{bold[1]}")
+    return " · ".join(parts)
+
+
+def result_rows(episode: Episode, heads: MapHeads | None, success_radius: float = 6.0) -> str:
+    """Rows for the result table: the maps' agreement with the ground truth at the end and from which step each
+    went wrong for good ("" without model maps)."""
+    if heads is None or not episode.steps or episode.steps[-1].maps is None:
+        return ""
+    figures = step_figures(episode, heads, success_radius)
+    last = figures[-1]
+    if last is None:
+        return ""
+
+    def fmt(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.2f}"
+
+    return (f"| truth at the end | perception {fmt(last.perception)}, relevance AUC {fmt(last.relevance)}, goal mass "
+            f"{fmt(last.goal)} |\n| went wrong | {went_wrong_text(went_wrong(figures))} |\n")

@@ -59,6 +59,7 @@ from app.panels import (
 from app.recording import Episode, StepRecord
 from app.runner import Runner
 from app.scene import DEFAULT_CAMERA, SceneView
+from app.truth import result_rows
 from app.viewer_events import (
     Close,
     CursorMoved,
@@ -400,7 +401,9 @@ class Viewer(RunnerListener):
             case EpisodeEnded(episode):
                 if episode is v.episode:
                     v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
-                    self.result.content = result_markdown(episode, self.runner.config.task.success_radius)
+                    model = self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
+                    self.result.content = result_markdown(episode, self.runner.config.task.success_radius) + \
+                        result_rows(episode, model.heads if model else None, self.runner.config.task.success_radius)
                     self.status.content = status_line(episode)
                     return True
                 return False
