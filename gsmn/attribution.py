@@ -284,8 +284,8 @@ class ModelTrace:
     p_named: np.ndarray  # (T,) P(named) at the named landmark's cell
     goal_peak_rc: np.ndarray  # (T, 2) int, the cell of the highest P(goal)
     goal_peak_p: np.ndarray  # (T,)
-    # (T, 3) the maps' agreement with the ground truth per step: perception, relevance, goal (NaN: undefined;
-    # gsmn.analysis.truth); None in traces written before it
+    # (T, 4) the maps' agreement with the ground truth per step: perception, relevance, goal (NaN: undefined) and
+    # the success region's share of the field (gsmn.analysis.truth); None in traces written before it
     truth: np.ndarray | None = None
 
 
@@ -301,7 +301,8 @@ def failed_from(truth: np.ndarray | None, goal_trained: bool = True) -> dict[str
     def value(x) -> float | None:
         return None if not np.isfinite(x) else float(x)
 
-    figures = [Agreement(value(p), value(r), value(g), 0) for p, r, g in np.asarray(truth, np.float64)]
+    figures = [Agreement(value(p), value(r), value(g), 0, float(share))
+               for p, r, g, share in np.asarray(truth, np.float64)]
     steps = first_failures(figures)
     out = {FIGURE_STAGES[k]: v for k, v in steps.items()}
     if not goal_trained:  # its P(goal) says nothing (no J_plan)
@@ -347,7 +348,8 @@ class TraceRecorder:
         from gsmn.analysis.truth import agreement
 
         f = agreement(out.semantic_map_w[0, 0].float().numpy(), relevance, goal, self._truth, self.heads)
-        self._figures.append(tuple(np.nan if v is None else v for v in (f.perception, f.relevance, f.goal)))
+        self._figures.append((*(np.nan if v is None else v for v in (f.perception, f.relevance, f.goal)),
+                              f.region_share))
         return action
 
     def trace(self) -> ModelTrace:

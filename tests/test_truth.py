@@ -96,9 +96,10 @@ def test_auc_counts_ties_half():
 
 def test_first_failures_is_where_a_figure_went_below_for_good():
     def a(p, r, g):
-        return Agreement(p, r, g, 0)
+        return Agreement(p, r, g, 0, 0.03)
 
-    figures = [a(None, None, 0.1), a(0.2, 0.9, 0.6), a(0.8, 0.9, 0.7), a(0.8, 0.6, 0.7), a(0.9, 0.5, 0.2)]
+    # region share 0.03: the goal figure is wrong at or below 0.06
+    figures = [a(None, None, 0.01), a(0.1, 0.9, 0.2), a(0.8, 0.9, 0.2), a(0.8, 0.5, 0.2), a(0.9, 0.4, 0.05)]
     assert first_failures(figures) == {"perception": None, "relevance": 3, "goal": 4}
     assert first_failures([a(None, None, None)]) == {"perception": 0, "relevance": 0, "goal": 0}
     assert first_failures([]) == {"perception": None, "relevance": None, "goal": None}
