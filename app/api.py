@@ -119,7 +119,7 @@ class StepModel(BaseModel):
     stop: bool
     model: ModelStep | None = Field(description="the model's own action at this step, when a model watched")
     truth: TruthFigures | None = Field(None, description="the maps' agreement with the ground truth at this step "
-                                       "(docs/dashboard.md, 'Ground truth'), when a model watched")
+                                       "(docs/compare.md), when a model watched")
 
 
 class StepsResponse(BaseModel):

@@ -44,7 +44,7 @@ from gsmn.world.spec import WorldSpec
 # a figure at or below these is no better than chance, and its stage counts as wrong at that step (first_failures):
 # perception: 0.2 (chance is 1 in 63 classes; the shipped GSMN's successes end at 0.29-0.47), relevance: an AUC of
 # 0.5, goal: twice the success region's share of the field, what an even spread of P(goal) puts there (successes
-# end at 3-7 times it). The figures of the shipped GSMN's episodes are in docs/dashboard.md, "Ground truth".
+# end at 4-7 times it). The shipped GSMN's figures: docs/compare.md, "Ground truth and the agreement figures".
 THRESHOLDS = {"perception": 0.2, "relevance": 0.5, "goal": 2.0}  # goal: times the region's share
 
 

@@ -13,7 +13,7 @@ it puts the simulator back at each of them, renders the same image, and lets the
 discarded), which rebuilds the semantic map exactly, since perception does not depend on the instruction. A fork
 with another model, whose map the flight never held, replays every step from 0 the same way, so its map is the one
 it would have built along the original's path. With `every=10` a fork replays at most 9 steps of the same model;
-the snapshots of a 150-step episode take about 2 MB (docs/dashboard.md, "Forks").
+the snapshots of a 150-step episode take about 2 MB (docs/compare.md, "Forks").
 """
 
 from __future__ import annotations
