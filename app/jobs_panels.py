@@ -185,6 +185,27 @@ def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
     return it, loss, action, learner, succeeded
 
 
+ACCURACY_CURVES = ("perception", "grounding", "goal", "instruction_landmark", "instruction_side")
+
+
+def accuracy_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
+    """The run's dev accuracy per objective and iteration (the paper's Figure 4: perception, grounding, goal,
+    instruction landmark and side), from each iteration's record; NaN where it has none (no dev set, or an objective
+    that is off)."""
+    if not metrics:
+        return np.zeros(1), *(np.full(1, np.nan) for _ in ACCURACY_CURVES)
+    it = np.array([m.get("iteration", k + 1) for k, m in enumerate(metrics)], np.float64)
+    return it, *(np.array([_finite(m.get("dev", {}).get(f"acc_{name}")) for m in metrics], np.float64)
+                 for name in ACCURACY_CURVES)
+
+
+def _finite(x) -> float:
+    try:
+        return float(x) if x is not None and math.isfinite(float(x)) else np.nan
+    except (TypeError, ValueError):
+        return np.nan
+
+
 def compare_html(c: dict, after: Evaluation | None) -> str:
     def cell(b: dict) -> str:
         mark = "<b style='color:#1e8449'>✓</b>" if b["success"] else "<b style='color:#c0392b'>✗</b>"

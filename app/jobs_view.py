@@ -25,6 +25,7 @@ from app.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
 from app.jobs import JobManager
 from app.jobs_api import replay_policy
 from app.jobs_panels import (
+    accuracy_data,
     compare_html,
     curve_data,
     curve_scales,
@@ -156,6 +157,16 @@ class JobsView(RunnerListener):
                     title="Training loss per iteration; the shares of steps the learner flew and of the "
                           "iteration's rollouts that succeeded", aspect=1.6,
                     scales=curve_scales(None), axes=({"label": "iteration"}, {}))
+                self.accuracies = gui.add_uplot(
+                    data=accuracy_data([]),
+                    series=({"label": "iteration"}, {"label": "perception", "stroke": "#8e44ad", "width": 2},
+                            {"label": "grounding", "stroke": "#16a085", "width": 2},
+                            {"label": "goal", "stroke": "#e08020", "width": 2},
+                            {"label": "instruction landmark", "stroke": "#2870f5", "width": 2},
+                            {"label": "side", "stroke": "#c0392b", "width": 2, "dash": [4, 3]}),
+                    title="Dev accuracy per objective (the paper's Figure 4), per iteration", aspect=1.6,
+                    scales={**curve_scales(None), "y": {"auto": False, "range": [0, 1]}},
+                    axes=({"label": "iteration"}, {}))
             with gui.add_folder("Runs"):
                 self.runs_table = gui.add_html("")
                 self.run_choice = gui.add_dropdown("Finished run", ("(none yet)",))
@@ -502,9 +513,11 @@ class JobsView(RunnerListener):
                     "." + (f" {html.escape(error_summary(shown.error))}" if shown.status == FAILED else "")
                     + run_resume_hint(shown))
             self.curves.data = curve_data(shown.metrics)
+            self.accuracies.data = accuracy_data(shown.metrics)
             scales = curve_scales(shown)
             if self.curves.scales != scales:  # sent only when the run shown changes
                 self.curves.scales = scales
+                self.accuracies.scales = {**scales, "y": {"auto": False, "range": [0, 1]}}
         finished = [r for r in runs if r.status == FINISHED]
         choices = {f"run-{r.id} ({len(r.env_ids) if r.env_ids else 'train'} envs, {r.settings['iterations']} it.)": r.id
                    for r in reversed(finished)}
