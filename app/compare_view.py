@@ -57,6 +57,9 @@ class CompareView:
         with gui.add_folder("Compare and fork", expand_by_default=False):
             self.other = gui.add_dropdown("Compare with", choices, initial_value=choices[-1],
                                           hint="the second policy; both fly the environment shown, together")
+            self.other_mirror = gui.add_checkbox("Its mirror ensemble", False,
+                                                 hint="fly that model as a mirror ensemble (the box above is for "
+                                                      "the first policy): the model plain against its ensemble")
             self.other_instruction = gui.add_text("Its instruction", "", hint="empty: the instruction above")
             self.compare_button = gui.add_button("Run both", icon=viser.Icon.ARROWS_SPLIT,
                                                  hint="fly the policy above and this one side by side")
@@ -99,7 +102,7 @@ class CompareView:
         policy, checkpoint = v._policy_of_choice()
         other = self.other.value
         other_policy, other_checkpoint = ("expert", None) if not other.startswith("Model: ") else (
-            "mirror" if v.mirror.value else "model", v.checkpoint_of(other))
+            "mirror" if self.other_mirror.value else "model", v.checkpoint_of(other))
         text = v.instruction.value.strip() or None
         specs = [PolicySpec(policy, checkpoint), PolicySpec(other_policy, other_checkpoint,
                                                             self.other_instruction.value.strip() or None)]
@@ -150,6 +153,20 @@ class CompareView:
         """A fork's path starts at its fork point."""
         return positions[episode.fork.step:] if episode.fork is not None else positions
 
+    def parting(self, episode: Episode, partner: Episode) -> int | None:
+        return diverged_at([s.position for s in episode.steps], [s.stop for s in episode.steps], episode.live,
+                           [s.position for s in partner.steps], [s.stop for s in partner.steps], partner.live)
+
+    def with_parting(self, episode: Episode | None, marks: tuple) -> tuple:
+        """The timeline's marks with the step at which the shown episode and its partner part ("parted")."""
+        partner = self.partner_of(episode)
+        part = self.parting(episode, partner) if partner is not None else None
+        if part is None or not 0 < part < len(episode.steps) - 1:
+            return marks
+        kept = tuple(m for m in marks if m[0] != part and (m[0] in (0, max(len(episode.steps) - 1, 1))
+                                                           or abs(m[0] - part) >= 0.08 * len(episode.steps)))
+        return tuple(sorted((*kept, (part, "parted")), key=lambda m: m[0]))
+
     # -- drawing ----------------------------------------------------------------------------------------------
     def render(self, episode: Episode, t: int) -> None:
         partner = self.partner_of(episode)
@@ -165,8 +182,7 @@ class CompareView:
             return
         pt = max(0, min(t, len(partner.steps) - 1))
         record = partner.steps[pt]
-        part = diverged_at([s.position for s in episode.steps], [s.stop for s in episode.steps], episode.live,
-                           [s.position for s in partner.steps], [s.stop for s in partner.steps], partner.live)
+        part = self.parting(episode, partner)
         path = np.array([s.position for s in partner.steps[: pt + 1]], np.float32)
         with self.viewer.server.atomic():
             s = self.viewer.scene

@@ -715,6 +715,7 @@ class Viewer(RunnerListener):
         episode = self.view.episode
         radius = self.runner.config.task.success_radius
         marks = timeline_marks(episode, radius) if episode is not None else ((0, "0"), (1, "1"))
+        marks = self.compare.with_parting(episode, marks)
         if marks != self._marks:
             self._marks = marks
             # viser 1.1 takes marks only at creation; its handle keeps them in the `_marks` prop

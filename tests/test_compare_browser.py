@@ -125,6 +125,9 @@ def test_two_checkpoints_side_by_side_scrubbed_step_by_step(dashboard, page):
     assert dashboard.viewer.compare.partner_drawn
     page.get_by_text(f"episode {b.id}").first.wait_for()  # both results side by side
     assert page.get_by_text("They part at step").count() + page.get_by_text("They have not parted").count() >= 1
+    part = comparison.diverged_at()
+    if part is not None and 0 < part < len(a.steps) - 1:
+        page.get_by_text("parted", exact=True).first.wait_for()  # the timeline marks the parting step
 
 
 def test_a_fork_with_another_instruction_flies_to_another_landmark(dashboard, page):
