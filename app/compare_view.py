@@ -164,20 +164,24 @@ class CompareView:
         if part is None or not 0 < part < len(episode.steps) - 1:
             return marks
         kept = tuple(m for m in marks if m[0] != part and (m[0] in (0, max(len(episode.steps) - 1, 1))
-                                                           or abs(m[0] - part) >= 0.08 * len(episode.steps)))
+                                                           or abs(m[0] - part) >= 0.15 * len(episode.steps)))
         return tuple(sorted((*kept, (part, "parted")), key=lambda m: m[0]))
 
     # -- drawing ----------------------------------------------------------------------------------------------
+    def clear(self) -> None:
+        """Take the other drone, its path and its panels away (another world, or an episode without a partner)."""
+        if self.partner_drawn:
+            for name in ("/partner", "/partner_flown", "/parted"):
+                self.viewer.server.scene.remove_by_name(name)
+            self.partner_drawn = False
+            self.summary.content = "No comparison shown: run two policies side by side, or fork an episode."
+            self.partner_camera.content = self.partner_maps.content = ""
+
     def render(self, episode: Episode, t: int) -> None:
         partner = self.partner_of(episode)
         scene = self.viewer.server.scene
         if partner is None or not partner.steps:
-            if self.partner_drawn:
-                for name in ("/partner", "/partner_flown", "/parted"):
-                    scene.remove_by_name(name)
-                self.partner_drawn = False
-                self.summary.content = "No comparison shown: run two policies side by side, or fork an episode."
-                self.partner_camera.content = self.partner_maps.content = ""
+            self.clear()
             self._plot_figures(episode)
             return
         pt = max(0, min(t, len(partner.steps) - 1))
@@ -200,6 +204,12 @@ class CompareView:
             elif self.partner_drawn:
                 scene.remove_by_name("/parted")
         self.partner_drawn = True
+        fork = episode.fork
+        note = (f"Showing fork {episode.id} of episode {fork.episode_id} (from step {fork.step}) beside it."
+                if fork is not None and fork.episode_id == partner.id else
+                f"Showing episodes {episode.id} and {partner.id} side by side.")
+        if self.note.content != note:
+            self.note.content = note
         self.summary.content = self._summary(episode, partner, part, t)
         shown = episode.steps[max(0, min(t, len(episode.steps) - 1))]
         self.partner_camera.content = cameras_html(shown.camera_jpeg, record.camera_jpeg, t, pt)

@@ -481,6 +481,7 @@ class Viewer(RunnerListener):
             self.scene.clear_layers()
             self.scene.clear_path()
             self.scene.draw_counterfactual(None)
+            self.compare.clear()
             task = shown.task
             self.scene.draw_task(task.instruction if task else None, task.path if task else None)
             self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)

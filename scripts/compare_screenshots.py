@@ -59,6 +59,16 @@ def open_tab(page, name: str) -> None:
     page.wait_for_timeout(800)
 
 
+def reset_camera(dashboard) -> None:
+    """Every open page's 3D view back to the dashboard's opening one (a drag or a key may have moved it)."""
+    from app.scene import DEFAULT_CAMERA
+
+    for client in dashboard.viewer.server.get_clients().values():
+        client.camera.position = DEFAULT_CAMERA["position"]
+        client.camera.look_at = DEFAULT_CAMERA["look_at"]
+        client.camera.up_direction = DEFAULT_CAMERA["up"]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="tiny", choices=("tiny", "paper"))
@@ -110,6 +120,8 @@ def main() -> int:
                   f"{[(e.result.success, e.result.steps) for e in c.episodes]}", flush=True)
             scrub_to(page, part if part is not None else len(c.episodes[0].steps) // 2)
             open_tab(page, "Comparison")
+            reset_camera(dashboard)
+            page.wait_for_timeout(1500)
             page.screenshot(path=str(out / "dashboard_compare.png"))
 
             # 2. a fork at step t with another instruction
@@ -136,6 +148,8 @@ def main() -> int:
             print(f"fork {fork.id} of {original.id} at {t}: {fork.result}", flush=True)
             page.wait_for_timeout(2500)
             open_tab(page, "Comparison")
+            reset_camera(dashboard)
+            page.wait_for_timeout(1500)
             page.screenshot(path=str(out / "dashboard_fork.png"))
 
             # 3. the ground truth beside the maps, and the figures over the episode
@@ -143,7 +157,8 @@ def main() -> int:
             scrub_to(page, len(fork.steps) - 1)
             open_tab(page, "Camera and maps")
             page.locator(".gsmn-truth").first.scroll_into_view_if_needed()
-            page.wait_for_timeout(1000)
+            reset_camera(dashboard)
+            page.wait_for_timeout(1500)
             page.screenshot(path=str(out / "dashboard_truth.png"))
             open_tab(page, "Actions")
             page.screenshot(path=str(out / "dashboard_truth_plot.png"))
