@@ -199,9 +199,8 @@ class ComparingRunner:
         if checkpoint is None and original.checkpoint is not None and original.checkpoint in self.models:
             checkpoint = original.checkpoint
         # checked with the original's instruction (whose path exists); the fork's own task replaces it
-        episode = self._new_episode(original.env_id, original.instruction, policy, checkpoint)
-        if not c.preempt:
-            self._check_queue()
+        episode = self._new_episode(original.env_id, original.instruction, policy, checkpoint,
+                                    check_queue=not c.preempt)
         episode.task = task
         plain = ("model", "expert")  # the expert flies with the plain model watching
         same_model = (episode.checkpoint is not None and episode.checkpoint == original.checkpoint

@@ -368,9 +368,8 @@ class Runner(ComparingRunner):
         return shown
 
     def _do_StartEpisode(self, c: StartEpisode) -> Episode:
-        episode = self._new_episode(c.env_id, c.instruction, c.policy, c.checkpoint, c.paused)
-        if not c.preempt:
-            self._check_queue()
+        episode = self._new_episode(c.env_id, c.instruction, c.policy, c.checkpoint, c.paused,
+                                    check_queue=not c.preempt)
         self.episodes.add(episode)
         self._enqueue(c, episode, episode)
         return episode
@@ -393,8 +392,8 @@ class Runner(ComparingRunner):
             self._pending.append(item)
 
     def _new_episode(self, env_id: int, text: str | None, policy: str, checkpoint: str | None,
-                     paused: bool = False) -> Episode:
-        """A checked episode, not yet stored or queued."""
+                     paused: bool = False, check_queue: bool = False) -> Episode:
+        """A checked episode (and, with `check_queue`, room for it in the queue), not yet stored or queued."""
         self._check_env_id(env_id)
         c = StartEpisode(env_id, text, policy, checkpoint, paused=paused)
         if c.policy not in POLICIES:
@@ -409,6 +408,8 @@ class Runner(ComparingRunner):
         if c.policy != "expert" and model is None:
             raise Conflict(f"no checkpoint to fly: {self.checkpoint_message} Choose the expert, or name a "
                            f"checkpoint.")
+        if check_queue:
+            self._check_queue()
         world = world_for_env(int(c.env_id), self.config.world)
         if c.instruction is None or not c.instruction.strip():
             try:

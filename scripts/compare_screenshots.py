@@ -59,13 +59,16 @@ def open_tab(page, name: str) -> None:
     page.wait_for_timeout(800)
 
 
-def reset_camera(dashboard) -> None:
-    """Every open page's 3D view back to the dashboard's opening one (a drag or a key may have moved it)."""
+def reset_camera(dashboard, look_at: tuple[float, float] | None = None) -> None:
+    """Every open page's 3D view back to the dashboard's opening one (a drag or a key may have moved it), or looking
+    down at a point from the south-east."""
     from app.scene import DEFAULT_CAMERA
 
+    target = DEFAULT_CAMERA["look_at"] if look_at is None else (look_at[0], look_at[1], 0.0)
+    position = DEFAULT_CAMERA["position"] if look_at is None else (look_at[0] + 9.0, look_at[1] - 15.0, 15.0)
     for client in dashboard.viewer.server.get_clients().values():
-        client.camera.position = DEFAULT_CAMERA["position"]
-        client.camera.look_at = DEFAULT_CAMERA["look_at"]
+        client.camera.position = position
+        client.camera.look_at = target
         client.camera.up_direction = DEFAULT_CAMERA["up"]
 
 
@@ -148,7 +151,7 @@ def main() -> int:
             print(f"fork {fork.id} of {original.id} at {t}: {fork.result}", flush=True)
             page.wait_for_timeout(2500)
             open_tab(page, "Comparison")
-            reset_camera(dashboard)
+            reset_camera(dashboard, fork.steps[t].position[:2])
             page.wait_for_timeout(1500)
             page.screenshot(path=str(out / "dashboard_fork.png"))
 
@@ -157,7 +160,7 @@ def main() -> int:
             scrub_to(page, len(fork.steps) - 1)
             open_tab(page, "Camera and maps")
             page.locator(".gsmn-truth").first.scroll_into_view_if_needed()
-            reset_camera(dashboard)
+            reset_camera(dashboard, fork.steps[t].position[:2])
             page.wait_for_timeout(1500)
             page.screenshot(path=str(out / "dashboard_truth.png"))
             open_tab(page, "Actions")
