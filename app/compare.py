@@ -1,7 +1,7 @@
 """Comparisons and forks: two policies flying one environment side by side, and an episode forked at step t.
 
 **Two episodes stepping together.** The runner owns one `Env`. A comparison flies both episodes in that one
-simulator, alternating: each round restores episode A's physics state (`Env.get_state`, ~0.2 kB, restored with
+simulator, alternating: each round restores episode A's physics state (`Env.get_state`, 0.8 kB, restored with
 `mj_setState` + `mj_forward`, microseconds), flies A's next step, saves its state, then does the same for B, then
 answers commands once (pause, single step and the speed limit pace the pair, not each episode). Both episodes are
 of the same world, so the compiled MuJoCo model, its textures and the renderer's GL context serve both; a second

@@ -1,7 +1,7 @@
 """Forking an episode at step t: fly on from the exact state it was in at step t, with the same or another
 instruction or policy (the dashboard's "fork", `POST /api/episodes/{id}/fork`).
 
-The state at step t is the simulator's (`Env.get_state`: MuJoCo's integration state, ~0.2 kB) and what the policy
+The state at step t is the simulator's (`Env.get_state`: MuJoCo's integration state, 0.8 kB) and what the policy
 carries into step t: a model's semantic map and its pose-noise generator (`ModelPolicy.carried`, 128 kB float32 at
 the paper's sizes, twice that for a mirror ensemble), and the expert's progress along its path (one number). What
 the instruction makes at reset (the sentence embedding and the language kernels) is not carried: the fork's
