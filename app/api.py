@@ -28,6 +28,7 @@ from app.layers import LAYERS, map_layers
 from app.recording import Episode, EpisodeResult
 from app.runner import Runner
 from app.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
+from app.truth import TRUTH_LAYERS, episode_truth, step_figures, truth_rgb, went_wrong
 from gsmn.model.heads import positive_probability
 
 log = logging.getLogger("gsmn.dashboard")
@@ -103,6 +104,12 @@ class ModelStep(BaseModel):
     stop_probability: float
 
 
+class TruthFigures(BaseModel):
+    perception: float | None = Field(description="share of the seen landmark cells whose most likely class is right")
+    relevance: float | None = Field(description="AUC of P(named) for the named landmark's footprint, over seen cells")
+    goal: float | None = Field(description="share of P(goal) inside the success region (null: no trained goal head)")
+
+
 class StepModel(BaseModel):
     step: int
     time: float
@@ -114,12 +121,17 @@ class StepModel(BaseModel):
     omega: float
     stop: bool
     model: ModelStep | None = Field(description="the model's own action at this step, when a model watched")
+    truth: TruthFigures | None = Field(None, description="the maps' agreement with the ground truth at this step "
+                                       "(docs/compare.md), when a model watched")
 
 
 class StepsResponse(BaseModel):
     episode_id: int
     status: str
     steps: list[StepModel]
+    went_wrong: dict[str, int | None] | None = Field(
+        None, description="for perception, relevance and goal: the step from which its figure stayed below its "
+        "threshold to the end (null: it ended above it); null without model maps")
 
 
 class GroundRequest(Strict):
@@ -272,11 +284,17 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
              summary="Per-step poses and actions (all recorded steps; complete once finished)")
     def get_steps(episode_id: EpisodeId) -> StepsResponse:
         e = episode_or_404(episode_id)
+        model = runner.models.get(e.checkpoint) if e.checkpoint else None
+        records = list(e.steps)
+        figures = step_figures(e, model.heads, runner.config.task.success_radius) if model else []
+        figures = (figures + [None] * len(records))[:len(records)]
         steps = [StepModel(step=s.step, time=s.time, x=s.position[0], y=s.position[1], z=s.position[2], yaw=s.yaw,
                            v=s.v, omega=s.omega, stop=s.stop,
                            model=ModelStep(v=s.maps.v, omega=s.maps.omega, stop_probability=s.maps.stop_probability)
-                           if s.maps else None) for s in list(e.steps)]
-        return StepsResponse(episode_id=e.id, status=e.status, steps=steps)
+                           if s.maps else None, truth=TruthFigures(perception=f.perception, relevance=f.relevance,
+                                                                   goal=f.goal) if f else None)
+                 for s, f in zip(records, figures, strict=True)]
+        return StepsResponse(episode_id=e.id, status=e.status, steps=steps, went_wrong=went_wrong(figures))
 
     def step_of(e: Episode, step: int):
         if not 0 <= step < len(e.steps):
@@ -292,11 +310,12 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
     @app.get("/api/episodes/{episode_id}/steps/{step}/maps/{layer}.png", response_class=Response,
              responses={200: {"content": {"image/png": {}}}, **responses(404, 422)},
              summary="A map layer at a step as PNG (semantic, relevance, goal, goal_robot, or another map of the "
-                     "model's output record by its name, e.g. coverage_w), 4x nearest-neighbour")
-    def get_map(episode_id: EpisodeId, step: Step, layer: Literal[LAYERS]) -> Response:
+                     "model's output record by its name, e.g. coverage_w; or the ground truth: truth_semantic, "
+                     "truth_relevance, truth_goal), 4x nearest-neighbour")
+    def get_map(episode_id: EpisodeId, step: Step, layer: Literal[LAYERS + TRUTH_LAYERS]) -> Response:
         e = episode_or_404(episode_id)
-        if layer not in LAYERS:
-            raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS)}")
+        if layer not in LAYERS + TRUTH_LAYERS:
+            raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS + TRUTH_LAYERS)}")
         record = step_of(e, step)
         from app.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
 
@@ -304,6 +323,9 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         if record.maps is None or heads is None:
             raise RunnerError(f"episode {e.id} has no model maps: no model watched it")
         m = record.maps
+        if layer in TRUTH_LAYERS:
+            truth = episode_truth(e, m.semantic_w.shape[-1], runner.config.task.success_radius)
+            return Response(png_bytes(upscale(truth_rgb(layer, truth, heads), 4)), media_type="image/png")
         layers = map_layers(m.maps, heads, world_names=tuple(lm.noun_phrase for lm in e.task.world.landmarks))
         if layer not in layers:
             raise RunnerError(f"episode {e.id}'s model records no map for layer {layer!r}")
@@ -324,6 +346,9 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                               relevance_probability=np.round(relevance, 4).tolist(),
                               goal_probability=np.round(goal, 4).tolist())
 
+    from app.compare_api import add_compare_routes
+
+    add_compare_routes(app, runner)
     return app
 
 

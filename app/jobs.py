@@ -43,7 +43,7 @@ from pathlib import Path
 from app.commands import Forbidden, NotFound, RunnerError, TooLarge
 from app.db import FINISHED, Database, Evaluation, Run
 from app.results import EpisodeRecorder, compare, summarize_rows
-from app.run_settings import RunSettings, expert_store_key, run_config
+from app.run_settings import DEV_EPISODES, RunSettings, expert_store_key, run_config
 from app.supervisor import Handle, Supervisor, alive
 from gsmn.config import RunConfig
 
@@ -266,8 +266,16 @@ class JobManager:
                 demos = env_ids if env_ids is not None else split_env_ids("train", settings.dataset_size)
                 parts.append(shlex.join([self.python, "-m", "gsmn.cli", "collect", "--out", str(store), "--env-ids",
                                          ",".join(map(str, demos)), "--workers", str(settings.workers), *flags]))
+            # expert episodes of the dev split, validated on after every iteration: the per-objective accuracies the
+            # Fine-tune tab plots as the run trains (the paper's Figure 4), shared by runs with the same settings
+            from gsmn.world.spec import split_env_ids
+
+            dev = self.root / "expert_dev" / expert_store_key(config)
+            dev_ids = split_env_ids("dev", DEV_EPISODES.get(settings.preset, DEV_EPISODES["tiny"]))
+            parts.append(shlex.join([self.python, "-m", "gsmn.cli", "collect", "--out", str(dev), "--env-ids",
+                                     ",".join(map(str, dev_ids)), "--workers", str(settings.workers), *flags]))
             dagger = [self.python, "-m", "gsmn.cli", "train", "dagger", "--init", str(init), "--data", str(store),
-                      "--run", str(folder / "run"), *flags]
+                      "--dev", str(dev), "--run", str(folder / "run"), *flags]
             if env_ids is not None:
                 dagger += ["--env-ids", ",".join(map(str, env_ids))]
             parts.append("exec " + shlex.join(dagger))

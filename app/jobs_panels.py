@@ -12,6 +12,7 @@ import numpy as np
 from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
 from app.panels import region_text
 from app.supervisor import resumable
+from app.truth import went_wrong_text
 from gsmn.attribution import STAGE_TITLES, reported_stages
 from gsmn.world.spec import split_of
 
@@ -160,6 +161,8 @@ def episode_html(r: EpisodeRow, note: str) -> str:
                  ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
                   else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
                                                                     f"goal, P {a['goal_peak_p']:.2f})")]
+        if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.truth)
+            rows.append(("went wrong", went_wrong_text(a["failed_from"], ("<b>", "</b>"))))
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
     both = both_readings(r)
     verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
@@ -234,6 +237,27 @@ def curve_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
     learner = np.array([m.get("learner_step_fraction", np.nan) for m in metrics], np.float64)
     succeeded = np.array([m.get("rollout_success", np.nan) for m in metrics], np.float64)
     return it, loss, action, learner, succeeded
+
+
+ACCURACY_CURVES = ("perception", "grounding", "goal", "instruction_landmark", "instruction_side")
+
+
+def accuracy_data(metrics: list[dict]) -> tuple[np.ndarray, ...]:
+    """The run's dev accuracy per objective and iteration (the paper's Figure 4: perception, grounding, goal,
+    instruction landmark and side), from each iteration's record; NaN where it has none (no dev set, or an objective
+    that is off)."""
+    if not metrics:
+        return np.zeros(1), *(np.full(1, np.nan) for _ in ACCURACY_CURVES)
+    it = np.array([m.get("iteration", k + 1) for k, m in enumerate(metrics)], np.float64)
+    return it, *(np.array([_finite(m.get("dev", {}).get(f"acc_{name}")) for m in metrics], np.float64)
+                 for name in ACCURACY_CURVES)
+
+
+def _finite(x) -> float:
+    try:
+        return float(x) if x is not None and math.isfinite(float(x)) else np.nan
+    except (TypeError, ValueError):
+        return np.nan
 
 
 def compare_html(c: dict, after: Evaluation | None, run: Run | None = None) -> str:

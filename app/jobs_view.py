@@ -29,6 +29,7 @@ from app.jobs_panels import (
     CURVE_SERIES,
     SETTING_HINTS,
     SORTS,
+    accuracy_data,
     compare_html,
     curve_data,
     curve_scales,
@@ -166,6 +167,16 @@ class JobsView(RunnerListener):
                 self.curves = gui.add_uplot(
                     data=curve_data([]), series=CURVE_SERIES, title="Per iteration", aspect=1.5,
                     scales=curve_scales(None, s.iterations), axes=CURVE_AXES)
+                self.accuracies = gui.add_uplot(
+                    data=accuracy_data([]),
+                    series=({"label": "iteration"}, {"label": "perception", "stroke": "#8e44ad", "width": 2},
+                            {"label": "grounding", "stroke": "#16a085", "width": 2},
+                            {"label": "goal", "stroke": "#e08020", "width": 2},
+                            {"label": "instruction landmark", "stroke": "#2870f5", "width": 2},
+                            {"label": "side", "stroke": "#c0392b", "width": 2, "dash": [4, 3]}),
+                    title="Dev accuracy per objective (the paper's Figure 4), per iteration", aspect=1.6,
+                    scales={**curve_scales(None, s.iterations), "y": {"auto": False, "range": [0, 1]}},
+                    axes=({"label": "iteration"}, {}))
             with gui.add_folder("Runs"):
                 self.runs_table = gui.add_html("")
                 self.run_choice = gui.add_dropdown("Finished run", ("(none yet)",))
@@ -263,7 +274,9 @@ class JobsView(RunnerListener):
         elif kind == "compare_replay":
             self._compare_replay(event[1])
         elif kind == "iterations" and not self.jobs.db.runs():  # the empty chart spans the iterations planned
-            self.curves.scales = curve_scales(None, int(self.run_iterations.value))
+            scales = curve_scales(None, int(self.run_iterations.value))
+            self.curves.scales = scales
+            self.accuracies.scales = {**scales, "y": {"auto": False, "range": [0, 1]}}
 
     # -- evaluations -------------------------------------------------------------------------------------------
     def _evaluate(self) -> None:
@@ -539,9 +552,11 @@ class JobsView(RunnerListener):
                     "." + (f" {html.escape(error_summary(shown.error))}" if shown.status == FAILED else "")
                     + run_resume_hint(shown))
             self.curves.data = curve_data(shown.metrics)
+            self.accuracies.data = accuracy_data(shown.metrics)
             scales = curve_scales(shown)
             if self.curves.scales != scales:  # sent only when the run shown changes
                 self.curves.scales = scales
+                self.accuracies.scales = {**scales, "y": {"auto": False, "range": [0, 1]}}
         finished = [r for r in runs if r.status == FINISHED]
         choices = {f"run-{r.id} ({len(r.env_ids) if r.env_ids else 'train'} envs, {r.settings['iterations']} it.)": r.id
                    for r in reversed(finished)}

@@ -202,7 +202,8 @@ class EpisodeKeeper(RunnerListener):
 
     # -- the runner's thread: only enqueue --------------------------------------------------------------------------
     def on_episode_start(self, episode: Episode) -> None:
-        self._queue.put(("start", episode, None))
+        # the steps it starts with: a fork's steps 0..t-1 are the original's (app.compare), never told one by one
+        self._queue.put(("start", episode, tuple(episode.steps)))
 
     def on_step(self, episode: Episode, record: StepRecord) -> None:
         self._queue.put(("step", episode, record))
@@ -250,6 +251,8 @@ class EpisodeKeeper(RunnerListener):
             elif kind == "start":
                 self._flush_steps(steps)
                 self._start(episode)
+                if record:
+                    steps.setdefault(episode.id, []).extend(step_row(r) for r in record)
             elif kind == "step":
                 if episode.id not in self._started:
                     self._start(episode)

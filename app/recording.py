@@ -12,6 +12,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -125,6 +126,10 @@ class Episode:
     started: float | None = None  # time.perf_counter() when the runner began flying it
     first_frame: float | None = None  # time.perf_counter() when its first step was recorded
     finished: float | None = None
+    # the simulator's state at every step and the policy's every few (gsmn.task.fork), in memory, for forks
+    snapshots: Any = None  # gsmn.task.fork.FlightSnapshots once it flies
+    fork: Any = None  # app.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
+    comparison: int | None = None  # the comparison it flies in (app.compare)
 
     @property
     def env_id(self) -> int:

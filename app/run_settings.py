@@ -33,6 +33,8 @@ class RunSettings:
 
 
 MAX_ROLLOUTS = 2000  # iterations x N_D of a run launched from the dashboard
+# expert episodes of the dev split a run launched from the dashboard validates on after every iteration, by preset
+DEV_EPISODES = {"tiny": 2, "small": 8, "paper": 30}
 
 RUN_PRESETS = {
     # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4

@@ -50,6 +50,7 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
+from app.compare import ComparingRunner, Comparison
 from app.layers import NOT_KEPT, MapHeads
 from app.recording import (
     CANCELLED,
@@ -66,8 +67,9 @@ from app.recording import (
 from gsmn.config import RunConfig
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.fork import FlightSnapshots
 from gsmn.task.instructions import Instruction, InstructionError, parse_instruction
-from gsmn.task.rollout import PolicyAction, Task, rollout, task_for_env
+from gsmn.task.rollout import PolicyAction, RolloutStart, Task, rollout, task_for_env
 from gsmn.world.assets import load_catalogue
 from gsmn.world.env import Env, Observation
 from gsmn.world.spec import WorldSpec, world_for_env
@@ -120,7 +122,7 @@ def checkpoint_label(name: str, path: Path) -> str:
     return describe_stage(stage, path) if stage else name
 
 
-class Runner:
+class Runner(ComparingRunner):
     """Owns Env, renderer and policies on one thread. `checkpoint`: a folder, or a name under
     `checkpoints_root`; `require_checkpoint` makes a missing one an error instead of a message."""
 
@@ -227,7 +229,8 @@ class Runner:
         try:
             while not self._closing:
                 if self._pending:
-                    self._fly(self._pending.popleft())
+                    item = self._pending.popleft()
+                    self._fly_pair(item) if isinstance(item, Comparison) else self._fly(item)
                     self._run_deferred()
                     continue
                 command = self._commands.get()
@@ -366,7 +369,34 @@ class Runner:
         return shown
 
     def _do_StartEpisode(self, c: StartEpisode) -> Episode:
-        self._check_env_id(c.env_id)
+        episode = self._new_episode(c.env_id, c.instruction, c.policy, c.checkpoint, c.paused,
+                                    check_queue=not c.preempt)
+        self.episodes.add(episode)
+        self._enqueue(c, episode, episode)
+        return episode
+
+    def _check_queue(self) -> None:
+        if len(self._pending) >= self.max_queued:
+            last = self._pending[-1]
+            last_id = last.episodes[-1].id if isinstance(last, Comparison) else last.id
+            raise Conflict(f"{len(self._pending)} episodes already wait to fly (at most {self.max_queued}): wait for "
+                           f"them, or cancel one (DELETE /api/episodes/{last_id})")
+
+    def _enqueue(self, c: Command, item: Episode | Comparison, answer: Any) -> None:
+        """Queue an episode (or a comparison's pair); with `c.preempt`, in front, ending the live one."""
+        if getattr(c, "preempt", False):
+            self._pending.appendleft(item)
+            if self.live is not None:
+                c.future.set_result(answer)
+                raise _Unwind
+        else:
+            self._pending.append(item)
+
+    def _new_episode(self, env_id: int, text: str | None, policy: str, checkpoint: str | None,
+                     paused: bool = False, check_queue: bool = False) -> Episode:
+        """A checked episode (and, with `check_queue`, room for it in the queue), not yet stored or queued."""
+        self._check_env_id(env_id)
+        c = StartEpisode(env_id, text, policy, checkpoint, paused=paused)
         if c.policy not in POLICIES:
             raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {c.policy!r}")
         model: LoadedModel | None
@@ -379,9 +409,8 @@ class Runner:
         if c.policy != "expert" and model is None:
             raise Conflict(f"no checkpoint to fly: {self.checkpoint_message} Choose the expert, or name a "
                            f"checkpoint.")
-        if not c.preempt and len(self._pending) >= self.max_queued:
-            raise Conflict(f"{len(self._pending)} episodes already wait to fly (at most {self.max_queued}): wait for "
-                           f"them, or cancel one (DELETE /api/episodes/{self._pending[-1].id})")
+        if check_queue:
+            self._check_queue()
         world = world_for_env(int(c.env_id), self.config.world)
         if c.instruction is None or not c.instruction.strip():
             try:
@@ -403,14 +432,6 @@ class Runner:
                           system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
                           horizon=self.config.task.horizon, start_paused=c.paused)
-        self.episodes.add(episode)
-        if c.preempt:
-            self._pending.appendleft(episode)
-            if self.live is not None:
-                c.future.set_result(episode)
-                raise _Unwind
-        else:
-            self._pending.append(episode)
         return episode
 
     def _do_Pause(self, c: Pause) -> bool:
@@ -438,9 +459,10 @@ class Runner:
     def _do_Cancel(self, c: Cancel) -> bool:
         """End the live episode and drop the queued ones."""
         while self._pending:
-            episode = self._pending.popleft()
-            episode.status = CANCELLED
-            self._notify("on_episode_end", episode)
+            item = self._pending.popleft()
+            for episode in item.episodes if isinstance(item, Comparison) else (item,):
+                episode.status = CANCELLED
+                self._notify("on_episode_end", episode)
         if self.live is None:
             return False
         c.future.set_result(True)
@@ -451,12 +473,14 @@ class Runner:
         episode = self.episodes.get(c.episode_id)
         if episode is None:
             raise NotFound(self.episodes.missing(c.episode_id))
-        if episode in self._pending:
-            self._pending.remove(episode)
-            episode.status = CANCELLED
-            self._notify("on_episode_end", episode)
+        pair = self._pending_pair(episode)
+        if episode in self._pending or pair is not None:
+            self._pending.remove(pair or episode)
+            for e in pair.episodes if pair else (episode,):
+                e.status = CANCELLED
+                self._notify("on_episode_end", e)
             return episode
-        if episode is not self.live:
+        if episode is not self.live and not self._flying_in_pair(episode):
             raise Conflict(f"episode {episode.id} is {episode.status}: nothing to cancel")
         c.future.set_result(episode)
         raise _Unwind
@@ -502,18 +526,53 @@ class Runner:
         return _replace_seconds(result, time.perf_counter() - t0)
 
     # -- flying -----------------------------------------------------------------------------------------------
-    def _fly(self, episode: Episode) -> None:
+    def _flight(self, episode: Episode) -> Flight:
+        """The policy that flies `episode`, with its own runtime state (two episodes may fly together)."""
+        from gsmn.model.policy import ModelPolicy
+
         model = self.models.get(episode.checkpoint) if episode.checkpoint else None
-        watcher = model.policy if model else None
+        watcher = None
+        if model is not None:
+            p = model.policy
+            watcher = ModelPolicy(p.model, p.vocabulary, p.config, p.name)
+        expert = None
         if episode.policy == "model":
-            policy = watcher
+            policy = carrier = watcher
         elif episode.policy == "mirror":  # the maps recorded are the unmirrored copy's (MirrorEnsemble)
             from gsmn.model.policy import MirrorEnsemble
 
-            policy = MirrorEnsemble(watcher)
+            policy = carrier = MirrorEnsemble(watcher)
         else:
             expert = ExpertPolicy(self.config)
             policy = WatchedPolicy(expert, watcher) if watcher is not None else expert
+            carrier = watcher
+        return Flight(episode, policy, watcher, carrier, expert)
+
+    def _start(self, flight: Flight) -> RolloutStart | None:
+        """None for an episode from the start corner; a fork is put at its step (`gsmn.task.fork`)."""
+        episode, fork = flight.episode, flight.episode.fork
+        episode.snapshots = FlightSnapshots()
+        if fork is None:
+            return None
+        from gsmn.task.fork import fork_start
+
+        world = episode.task.world
+        self.env.reset(world.env_id, episode.instruction, world)
+        flight.policy.reset(episode.task)
+        if flight.expert is not None and fork.expert_task is not None:  # its path: the original's, or from the fork
+            if not fork.same_expert and fork.step > 0:  # already in flight: no take-off ramp on its new path
+                from dataclasses import replace
+
+                flight.expert.config = replace(self.config, expert=replace(self.config.expert, ramp_waypoints=0))
+            flight.expert.reset(fork.expert_task)
+        start = fork_start(self.env, fork.snapshots, fork.step, fork.prefix, flight.carrier, fork.same_model,
+                           flight.expert, fork.same_expert)
+        episode.snapshots = fork.snapshots.prefix(fork.step, fork.same_model)
+        return start
+
+    def _fly(self, episode: Episode) -> None:
+        flight = self._flight(episode)
+        policy = flight.policy
         self.live = episode
         self.paused = episode.start_paused
         self._step_budget = 0
@@ -523,8 +582,8 @@ class Runner:
         self._notify("on_episode_start", episode)
         try:
             record = rollout(self.env, policy, episode.task, episode.horizon,
-                             on_step=lambda obs, action: self._on_step(episode, obs, action, watcher),
-                             success_radius=self.config.task.success_radius)
+                             on_step=lambda obs, action: self._on_step(episode, obs, action, flight),
+                             success_radius=self.config.task.success_radius, start=self._start(flight))
             last = episode.steps[-1] if episode.steps else None
             episode.result = EpisodeResult.of(record, last.decisive_stop_probability if last else None)
             episode.status = FINISHED
@@ -539,7 +598,11 @@ class Runner:
             self.paused = False
             self._notify("on_episode_end", episode)
 
-    def _on_step(self, episode: Episode, obs: Observation, action: PolicyAction, watcher) -> None:
+    def _on_step(self, episode: Episode, obs: Observation, action: PolicyAction, flight: Flight,
+                 pace: bool = True) -> None:
+        """Record a step; with `pace`, answer commands until the next is due (a comparison paces its pair)."""
+        watcher = flight.watcher
+        episode.snapshots.record(self.env, flight.carrier, flight.expert)
         p = obs.pose.position
         record = StepRecord(step=obs.step, time=obs.time, position=(float(p[0]), float(p[1]), float(p[2])),
                             yaw=float(obs.pose.yaw), T_world_camera=obs.T_world_camera.astype(np.float32),
@@ -551,7 +614,7 @@ class Runner:
         if episode.first_frame is None:
             episode.first_frame = time.perf_counter()
         self._notify("on_step", episode, record)
-        if not action.stop and obs.step < episode.horizon:
+        if pace and not action.stop and obs.step < episode.horizon:
             self._between_steps(episode)
 
     def _between_steps(self, episode: Episode) -> None:
@@ -578,6 +641,19 @@ class Runner:
                 raise _Unwind
             self._handle(command)
         self._last_step = time.perf_counter()
+
+
+@dataclass
+class Flight:
+    """An episode and what flies it: `policy` (what rollout calls), the model whose maps are recorded (`watcher`),
+    the part whose state carries from step to step (`carrier`: the model, or the mirror ensemble) and the expert
+    when it flies."""
+
+    episode: Episode
+    policy: Any
+    watcher: Any | None
+    carrier: Any | None
+    expert: ExpertPolicy | None
 
 
 def _step_maps(policy) -> StepMaps | None:

@@ -42,6 +42,7 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
+from app.compare_view import CompareView
 from app.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
 from app.panels import (
     ACTIONS_AXES,
@@ -69,6 +70,7 @@ from app.panels import (
 from app.recording import Episode, StepRecord
 from app.runner import Runner
 from app.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
+from app.truth import result_rows
 from app.viewer_events import (
     Close,
     CursorMoved,
@@ -223,6 +225,8 @@ class Viewer(RunnerListener):
             self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
             self.whatif_note = gui.add_markdown("Type another instruction: its relevance and goal maps and the action "
                                                 "it would give appear at once, on the map already built.")
+        self.compare = CompareView(self)  # comparisons, forks and the ground truth (app.compare_view)
+        self.compare.build_controls(gui)
         with gui.add_folder("Layers on the ground", expand_by_default=True):
             # the world-frame layers of the model's output record (app.layers.LAYERS), the goal map shown first
             labels = {"semantic": ("Semantic map", False), "relevance": ("Relevance map", False),
@@ -272,6 +276,8 @@ class Viewer(RunnerListener):
             gui.add_markdown("The black line follows the timeline; green: the steps inside the success region, where "
                              "a STOP would have succeeded; the model stops when P(stop) passes 0.5. The model's own v "
                              "and omega are in the readout under the camera when the expert flies.")
+            self.compare.build_plot(gui)
+        self.compare.build_tab(panel, gui)
         panel.dock_right()
         panel.set_width(420)
         self.panel = panel
@@ -508,6 +514,8 @@ class Viewer(RunnerListener):
                 self._show_world(shown)
                 return False
             case EpisodeStarted(episode):
+                if self.compare.keeps_shown(episode):
+                    return False
                 self._start(episode)
                 return False
             case StepRecorded(episode):
@@ -515,14 +523,16 @@ class Viewer(RunnerListener):
                     if v.follow:
                         v.cursor = len(episode.steps) - 1
                     return v.follow or len(episode.steps) <= 2  # the timeline grows either way
-                return False
+                return v.follow and self.compare.is_partner(episode)
             case EpisodeEnded(episode):
                 if episode is v.episode:
                     v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
-                    self.result.content = result_markdown(episode, self.runner.config.task.success_radius)
+                    model = self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
+                    self.result.content = result_markdown(episode, self.runner.config.task.success_radius) + \
+                        result_rows(episode, model.heads if model else None, self.runner.config.task.success_radius)
                     self.status.content = status_line(episode)
                     return True
-                return False
+                return self.compare.is_partner(episode)
             case StateChanged(episode):
                 if episode is v.episode and v.episode is not None:
                     self.status.content = status_line(v.episode)
@@ -597,6 +607,7 @@ class Viewer(RunnerListener):
             self.scene.clear_layers()
             self.scene.clear_path()
             self.scene.draw_counterfactual(None)
+            self.compare.clear()
             task = shown.task
             self.scene.draw_task(task.instruction if task else None, task.path if task else None)
             self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)
@@ -621,6 +632,7 @@ class Viewer(RunnerListener):
     def _start(self, episode: Episode) -> None:
         v = self.view
         v.episode, v.cursor, v.follow, v.replaying, v.plot_steps = episode, 0, True, False, (-1, -1)
+        self.compare.reset_plot()
         self.follow.value = True
         world = episode.task.world
         self.world_shown = None
@@ -789,7 +801,7 @@ class Viewer(RunnerListener):
                         "goal_map_r": grounding.goal_r}
             layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value,
                                 tuple(lm.noun_phrase for lm in episode.task.world.landmarks))
-        positions = np.array([s.position for s in episode.steps[: t + 1]])
+        positions = self.compare.own_path(episode, np.array([s.position for s in episode.steps[: t + 1]]))
         opacity = float(self.opacity.value)
         with self.server.atomic():
             self.scene.set_drone(record.position, record.yaw, record.T_world_camera, None, record.camera_jpeg)
@@ -802,7 +814,7 @@ class Viewer(RunnerListener):
         self.camera.content = camera_html(record.camera_jpeg)
         self.readout.content = readout_markdown(episode, t, counterfactual, self.view.counterfactual)
         self.maps.content = maps_html(episode, t, layers, self.view.counterfactual if grounding else None,
-                                      self._cell_of)
+                                      self._cell_of) + self.compare.truth_html(episode, t)
         if self.view.counterfactual and grounding is not None:
             self.whatif_note.content = whatif_markdown(grounding, record)
         elif isinstance(counterfactual, str):
@@ -812,6 +824,7 @@ class Viewer(RunnerListener):
         if (n, t) != v.plot_steps:  # the cursor follows the timeline
             self._update_plot(episode, t)
             v.plot_steps = (n, t)
+        self.compare.render(episode, t)
         self.frames_drawn += 1
         if self._clicked_at is not None and episode.started is not None and episode.started > self._clicked_at:
             self.click_to_frame.append(time.perf_counter() - self._clicked_at)  # the server's share of it
@@ -842,6 +855,7 @@ class Viewer(RunnerListener):
         episode = self.view.episode
         radius = self.runner.config.task.success_radius
         marks = timeline_marks(episode, radius) if episode is not None else ((0, "0"), (1, "1"))
+        marks = self.compare.with_parting(episode, marks)
         if marks != self._marks:
             self._marks = marks
             # viser 1.1 takes marks only at creation; its handle keeps them in the `_marks` prop

@@ -25,7 +25,7 @@ numbers per step, and `save_trace` / `load_trace` store them (compressed .npz, f
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +117,9 @@ class Attribution:
     stopped: bool
     final_to_peak: float  # m from where the drone ended to the goal peak
     peak_bearing: str | None = None  # where that peak lay from the drone's final pose: BEARINGS; None: no heading
+    # per stage (perception, grounding, goal): the step from which the map's agreement with the ground truth stayed
+    # below its threshold to the end (gsmn.analysis.truth), None if it ended above it; None without per-step figures
+    failed_from: dict[str, int | None] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -253,9 +256,10 @@ def attribute_record(record: dict, trace: ModelTrace, heads: Heads, config: RunC
     final_yaw = record.get("final_yaw")  # progress lines (the dashboard's) carry it instead of the trajectory
     if final_yaw is None and record.get("trajectory"):
         final_yaw = record["trajectory"][-1][3]
-    return attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
-                     bool(record["stopped"]), bool(record["success"]), config.task.success_radius,
-                     None if final_yaw is None else float(final_yaw))
+    a = attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
+                  bool(record["stopped"]), bool(record["success"]), config.task.success_radius,
+                  None if final_yaw is None else float(final_yaw))
+    return replace(a, failed_from=failed_from(trace.truth, heads.goal_trained))
 
 
 def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:
@@ -280,6 +284,30 @@ class ModelTrace:
     p_named: np.ndarray  # (T,) P(named) at the named landmark's cell
     goal_peak_rc: np.ndarray  # (T, 2) int, the cell of the highest P(goal)
     goal_peak_p: np.ndarray  # (T,)
+    # (T, 4) the maps' agreement with the ground truth per step: perception, relevance, goal (NaN: undefined) and
+    # the success region's share of the field (gsmn.analysis.truth); None in traces written before it
+    truth: np.ndarray | None = None
+
+
+FIGURE_STAGES = {"perception": "perception", "relevance": "grounding", "goal": "goal"}
+
+
+def failed_from(truth: np.ndarray | None, goal_trained: bool = True) -> dict[str, int | None] | None:
+    """The step each stage went wrong for good, from a trace's per-step figures, by stage name."""
+    if truth is None or len(truth) == 0:
+        return None
+    from gsmn.analysis.truth import Agreement, first_failures
+
+    def value(x) -> float | None:
+        return None if not np.isfinite(x) else float(x)
+
+    figures = [Agreement(value(p), value(r), value(g), 0, float(share))
+               for p, r, g, share in np.asarray(truth, np.float64)]
+    steps = first_failures(figures)
+    out = {FIGURE_STAGES[k]: v for k, v in steps.items()}
+    if not goal_trained:  # its P(goal) says nothing (no J_plan)
+        del out["goal"]
+    return out
 
 
 class TraceRecorder:
@@ -297,7 +325,11 @@ class TraceRecorder:
         self.policy.reset(task)
         lm = task.world.landmarks[task.instruction.landmark_index]
         self._cell = cell_of(lm.x, lm.y, task.world.field_size, self.policy.model.config.model.map_size)
-        self._rows, self._last = [], None
+        self._rows, self._last, self._figures = [], None, []
+        from gsmn.analysis.truth import truth_maps
+
+        self._truth = truth_maps(task.world, task.instruction, self.policy.model.config.model.map_size,
+                                 self.policy.config.task.success_radius)
 
     def act(self, obs):
         action = self.policy.act(obs)
@@ -313,6 +345,11 @@ class TraceRecorder:
                            float(out.omega[0, 0]) * drone.max_yaw_rate,
                            float(torch.sigmoid(out.stop_logit[0, 0])), float(p_named), gr, gc, gp))
         self._last = out
+        from gsmn.analysis.truth import agreement
+
+        f = agreement(out.semantic_map_w[0, 0].float().numpy(), relevance, goal, self._truth, self.heads)
+        self._figures.append((*(np.nan if v is None else v for v in (f.perception, f.relevance, f.goal)),
+                              f.region_share))
         return action
 
     def trace(self) -> ModelTrace:
@@ -324,7 +361,7 @@ class TraceRecorder:
         a = np.array([row[:4] + (row[6],) for row in self._rows], np.float32)
         rc = np.array([row[4:6] for row in self._rows], np.int16)
         return ModelTrace(maps, v=a[:, 0], omega=a[:, 1], stop_probability=a[:, 2], p_named=a[:, 3],
-                          goal_peak_rc=rc, goal_peak_p=a[:, 4])
+                          goal_peak_rc=rc, goal_peak_p=a[:, 4], truth=np.array(self._figures, np.float32))
 
 
 def save_trace(path: Path | str, trace: ModelTrace) -> None:
@@ -337,7 +374,8 @@ def save_trace(path: Path | str, trace: ModelTrace) -> None:
                         relevance_map_w=m.relevance_map_w.astype(np.float16),
                         goal_map_w=m.goal_map_w.astype(np.float16), v=trace.v, omega=trace.omega,
                         stop_probability=trace.stop_probability, p_named=trace.p_named,
-                        goal_peak_rc=trace.goal_peak_rc, goal_peak_p=trace.goal_peak_p)
+                        goal_peak_rc=trace.goal_peak_rc, goal_peak_p=trace.goal_peak_p,
+                        **({} if trace.truth is None else {"truth": trace.truth}))
     tmp.replace(path)
 
 

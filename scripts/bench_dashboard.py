@@ -6,7 +6,10 @@ Measures, in one process serving the page and the API:
 - time from clicking Run in the page to the first streamed frame drawn there (the maps panel of the new
   episode's first step, which the page updates last);
 - counterfactual grounding latency: the grounding itself (runner), the API round trip, and from clicking
-  Ground in the page to the what-if maps drawn there.
+  Ground in the page to the what-if maps drawn there;
+- live steps per second of a comparison (two episodes stepping together in one simulator) beside a single
+  episode's, alternating in the same run, the fork snapshots' memory per step, and how long a fork takes to fly
+  its first step (at the last step of an episode, and 9 steps after a keyframe).
 
 Targets (issue 6): >= 10 live steps/s on 2 cores, first frame within 1 s, grounding within 50 ms.
 With --screenshots DIR it also writes dashboard_live.png (mid-episode) and dashboard_counterfactual.png.
@@ -225,6 +228,10 @@ def main() -> int:
             print(f"click Ground -> what-if maps (ms):   {summary(page_ms)}", flush=True)
             print(f"  of which the server (click callback to maps sent): {summary(whatif_server_ms)}", flush=True)
 
+            # 3. a comparison (two episodes stepping together in the runner's one simulator) beside a single
+            # episode, both flown to the end here with the page open; then a fork at the last step
+            figures.update(compare_and_fork(runner, a.env_id, a.runs))
+
             if a.screenshots:
                 take_screenshots(page, dashboard, Path(a.screenshots), runner, SetSpeed, StartEpisode,
                                  expert=bool(note))
@@ -237,6 +244,41 @@ def main() -> int:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps(figures, indent=1))
     return 0
+
+
+def compare_and_fork(runner, env_id: int, runs: int) -> dict:
+    """Live steps per second of a single episode and of a comparison (timeline steps: one step of each episode),
+    alternating, in one run; the snapshots' memory per step; the time a fork takes to fly its first step."""
+    from app.commands import StartEpisode
+    from app.compare import ForkEpisode, PolicySpec, StartComparison
+
+    single, pair, pair_total, snapshot_bytes, fork_ms = [], [], [], [], []
+    for _ in range(max(runs, 1)):
+        e = runner.call(StartEpisode(env_id, None, "model"))
+        wait(lambda e=e: not e.live)
+        single.append(e.steps_per_second() or 0.0)
+        snapshot_bytes.append(e.snapshots.nbytes() / max(len(e.steps), 1))
+        c = runner.call(StartComparison(env_id, None, [PolicySpec("model"), PolicySpec("expert")]))
+        wait(lambda c=c: not any(x.live for x in c.episodes))
+        first = min(x.first_frame for x in c.episodes)
+        last = max(x.finished for x in c.episodes)
+        rounds = max(len(x.steps) for x in c.episodes) - 1
+        pair.append(rounds / max(last - first, 1e-9))
+        pair_total.append((sum(len(x.steps) for x in c.episodes) - 2) / max(last - first, 1e-9))
+        for t in (len(e.steps) - 1, 9):  # the last step, and one just before a keyframe (9 steps replayed)
+            t0 = time.perf_counter()
+            fork = runner.call(ForkEpisode(e.id, t))
+            wait(lambda fork=fork, t=t: len(fork.steps) > t)
+            fork_ms.append(1000 * (time.perf_counter() - t0))
+            wait(lambda fork=fork: not fork.live)
+    print(f"live steps/s, a single episode:      {summary(single)}", flush=True)
+    print(f"live steps/s, a comparison (timeline steps, both drones): {summary(pair)}", flush=True)
+    print(f"  episode steps/s over both:         {summary(pair_total)}", flush=True)
+    print(f"fork snapshots per step (kB):        {summary([b / 1000 for b in snapshot_bytes])}", flush=True)
+    print(f"fork -> its first step flown (ms):   {summary(fork_ms)}", flush=True)
+    return {"single_steps_per_second": single, "comparison_steps_per_second": pair,
+            "comparison_episode_steps_per_second": pair_total, "snapshot_bytes_per_step": snapshot_bytes,
+            "fork_first_step_ms": fork_ms}
 
 
 def take_screenshots(page, dashboard, out: Path, runner, SetSpeed, StartEpisode, expert: bool = False) -> None:

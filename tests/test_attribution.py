@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 import subprocess
 import sys
 
@@ -208,7 +209,11 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
         assert report.classes[0][0] == a.top_class
 
     # The same from the episode as `gsmn eval --json` writes it, and over a whole result file.
-    assert attribute_record(json.loads(json.dumps(record.to_dict())), trace, Heads.of(model), config) == a
+    from_record = attribute_record(json.loads(json.dumps(record.to_dict())), trace, Heads.of(model), config)
+    assert replace(from_record, failed_from=None) == a
+    # and when each stage went wrong for good, from the per-step agreement with the ground truth (gsmn.analysis.truth)
+    assert trace.truth.shape == (T, 4) and set(from_record.failed_from) == {"perception", "grounding", "goal"}
+    assert all(v is None or 0 <= v < T for v in from_record.failed_from.values())
     results = tmp_path / "eval.json"
     results.write_text(json.dumps(results_dict("gsmn", str(folder), [record], config, 1.0, 1)))
     script = [sys.executable, "-m", "gsmn.cli", "attribute"]

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from app.fixtures import make_untrained_checkpoint
@@ -251,6 +252,14 @@ def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve,
     assert done["status"] == "finished", done["error"]
     assert fractions == sorted(fractions) and done["progress"]["fraction"] == 1.0
     assert [m["iteration"] for m in done["metrics"]] == [1, 2] and "loss" in done["metrics"][0]["train"]
+    # validated on the dev split's expert episodes after every iteration: the Fine-tune tab's Figure 4 curves
+    from app.jobs_panels import ACCURACY_CURVES, accuracy_data
+
+    assert all(0 <= m["dev"]["acc_perception"] <= 1 and 0 <= m["dev"]["acc_instruction_side"] <= 1
+               for m in done["metrics"])
+    curves = accuracy_data(done["metrics"])
+    assert list(curves[0]) == [1, 2] and len(curves) == 1 + len(ACCURACY_CURVES)
+    assert all(np.isfinite(c).all() for c in (curves[1], curves[4], curves[5]))  # perception, landmark, side
     model, config, _, meta = load_checkpoint(done["checkpoint"])
     assert model.kind == "gsmn" and config.dagger.iterations == 2 and meta["metrics"]["iteration"] == 2
     assert config.train.mirror == 0.5  # the setting reached the training process

@@ -413,3 +413,18 @@ def test_the_failure_browser_and_fine_tune_tab_read_plainly():
     assert "trained on: the figures are on its training episodes" in trained_on_note(c, run)
     assert "1 of these 2" in trained_on_note({"episodes": [{"env_id": 7}, {"env_id": 90}]}, run)
     assert "held out" in trained_on_note({"episodes": [{"env_id": 75}]}, dataclasses.replace(run, env_ids=None))
+
+
+def test_a_failure_card_says_from_which_step_each_stage_went_wrong():
+    from gsmn.attribution import Attribution
+
+    a = Attribution(stage="goal", reason="Grounded, but the goal map peaks 9.0 m from the true goal.", landmark_row=3,
+                    landmark_col=4, observed=True, perceived=True, top_class="box", p_landmark_class=0.6,
+                    landmark_class_rank=1, grounded=True, p_named=0.7, p_named_other=0.2, other_landmark="tank",
+                    goal_right=False, goal_peak_x=1.0, goal_peak_y=2.0, goal_peak_p=0.4, goal_peak_error=9.0,
+                    stopped=True, final_to_peak=0.5, failed_from={"perception": None, "grounding": None, "goal": 41})
+    card = episode_html(episode(1, 0, 70, stage="goal", attribution=a.to_dict()), "")
+    assert "went wrong" in card and "goal map: wrong from step <b>41</b>" in card
+    assert "perceived: right at the end" in card
+    older = {k: v for k, v in a.to_dict().items() if k != "failed_from"}  # recorded before the figures were
+    assert "went wrong" not in episode_html(episode(1, 0, 70, stage="goal", attribution=older), "")

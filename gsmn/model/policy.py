@@ -49,6 +49,18 @@ class ModelPolicy:
         self.state = None
         self.last_outputs = None
 
+    def carried(self) -> tuple:
+        """What this policy carries from one step to the next, apart from what its instruction makes at `reset`
+        (the embedding and kernels): the semantic map (or LSTM state) and the pose-noise generator's state.
+        `restore` puts it back, so the policy acts on from there as it did (a fork, `gsmn.task.fork`)."""
+        state = None if self.state is None else _clone(self.state)
+        return state, self.generator.get_state()
+
+    def restore(self, carried: tuple) -> None:
+        state, generator = carried
+        self.state = None if state is None else _clone(state)
+        self.generator.set_state(generator)
+
     def embed(self, text: str) -> torch.Tensor:
         """The sentence embedding (1, E) of an instruction."""
         ids = self.vocabulary.encode(text)
@@ -88,6 +100,13 @@ class ModelPolicy:
 
 
 GSMNPolicy = ModelPolicy
+
+
+def _clone(state):
+    """A copy of a carried state: a tensor or a tuple of tensors (an LSTM's)."""
+    if isinstance(state, torch.Tensor):
+        return state.clone()
+    return type(state)(_clone(s) for s in state)
 
 
 class Ensemble:
@@ -146,6 +165,14 @@ class Ensemble:
         p_stop = sum(p_stops) / n
         return PolicyAction(forward_velocity=v / n, yaw_rate=omega / n, stop=p_stop > 0.5, stop_probability=p_stop,
                             member_stop_probabilities=tuple(p_stops))
+
+    def carried(self) -> tuple:
+        """Every member's carried state, in member order (`ModelPolicy.carried`)."""
+        return tuple(p.carried() for p, _ in self.members)
+
+    def restore(self, carried: tuple) -> None:
+        for (p, _), c in zip(self.members, carried, strict=True):
+            p.restore(c)
 
     def counterfactual(self, text: str) -> GroundingOutputs:
         return self.policy.counterfactual(text)

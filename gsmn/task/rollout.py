@@ -8,7 +8,7 @@ where the drone is (paper: Task, "the agent outputs the action STOP").
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import asdict, dataclass
 from typing import Protocol
 
@@ -122,13 +122,50 @@ class EpisodeRecord:
 OnStep = Callable[[Observation, PolicyAction], None]
 
 
+@dataclass(frozen=True)
+class RolloutStart:
+    """Where a rollout that does not begin at the start corner begins (a fork, `gsmn.task.fork`): the environment
+    and the policy already stand at observation `obs` (step t), and steps 0..t-1 were flown as these say."""
+
+    obs: Observation
+    trajectory: tuple[tuple[float, float, float, float], ...]  # steps 0..t-1, as EpisodeRecord's
+    actions: tuple[tuple[float, float, bool], ...]
+    stop_probabilities: tuple[float | None, ...]
+    member_stop_probabilities: tuple[tuple[float, ...] | None, ...]
+
+
 def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep | None = None,
-            success_radius: float = 6.0) -> EpisodeRecord:
-    """Fly `policy` on `task` until it says STOP or `horizon` actions have been flown."""
+            success_radius: float = 6.0, start: RolloutStart | None = None) -> EpisodeRecord:
+    """Fly `policy` on `task` until it says STOP or `horizon` actions have been flown; from the start corner, or
+    on from `start` (the caller has put `env` and `policy` there)."""
+    flight = rollout_steps(env, policy, task, horizon, on_step, success_radius, start)
+    while True:
+        try:
+            next(flight)
+        except StopIteration as done:
+            return done.value
+
+
+def rollout_steps(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep | None = None,
+                  success_radius: float = 6.0, start: RolloutStart | None = None
+                  ) -> Generator[int, None, EpisodeRecord]:
+    """`rollout` one step at a time: a generator that yields the step t just decided (after `on_step`), with the
+    environment still at observation t, before flying its action; it returns the EpisodeRecord. Several episodes
+    of one world can share one `Env` this way, the caller saving and restoring its state (`Env.get_state`)
+    around each `next` (the dashboard's comparisons)."""
     world, instruction = task.world, task.instruction
-    obs = env.reset(world.env_id, instruction.text, world)
-    policy.reset(task)
-    trajectory, actions, stop_probabilities, members, stopped = [], [], [], [], False
+    trajectory: list = []
+    actions: list = []
+    stop_probabilities: list = []
+    members: list = []
+    stopped = False
+    if start is None:
+        obs = env.reset(world.env_id, instruction.text, world)
+        policy.reset(task)
+    else:
+        obs = start.obs
+        trajectory, actions = list(start.trajectory), list(start.actions)
+        stop_probabilities, members = list(start.stop_probabilities), list(start.member_stop_probabilities)
     while True:
         action = policy.act(obs)
         p = obs.pose.position
@@ -143,6 +180,7 @@ def rollout(env: Env, policy: Policy, task: Task, horizon: int, on_step: OnStep 
             break
         if obs.step >= horizon:
             break
+        yield obs.step
         obs = env.step(Action(action.forward_velocity, action.yaw_rate))
     final = obs.pose.position[:2]
     landmark = world.landmarks[instruction.landmark_index]

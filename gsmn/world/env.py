@@ -48,6 +48,15 @@ class Observation:
     time: float  # simulated seconds since reset
 
 
+@dataclass(frozen=True)
+class EnvState:
+    """Everything an `Env` needs to fly on exactly as it did from one observation (`Env.get_state`)."""
+
+    env_id: int
+    step: int  # actions taken since reset
+    physics: np.ndarray  # the simulator's integration state (float64, `Simulator.get_state`)
+
+
 class Env:
     """A quadcopter in a procedurally generated world. Reuses the compiled world when reset to the same id.
 
@@ -92,6 +101,20 @@ class Env:
             raise RuntimeError("call Env.reset(env_id) before Env.step")
         self.sim.step(action.forward_velocity, action.yaw_rate)
         self._step += 1
+        return self.observe()
+
+    def get_state(self) -> EnvState:
+        """The state at the current observation: `set_state` with it, and the same actions fly the same steps."""
+        if self.sim is None:
+            raise RuntimeError("call Env.reset(env_id) before Env.get_state")
+        return EnvState(self.sim.world.env_id, self._step, self.sim.get_state())
+
+    def set_state(self, state: EnvState) -> Observation:
+        """Return to a state from `get_state` of this world (reset to it first) and observe there."""
+        if self.sim is None or self.sim.world.env_id != state.env_id:
+            raise RuntimeError(f"the state is of environment {state.env_id}; reset the Env to it first")
+        self.sim.set_state(state.physics)
+        self._step = state.step
         return self.observe()
 
     def observe(self) -> Observation:

@@ -211,6 +211,9 @@ class DroneController:
         return np.array([thrust, torque[0], torque[1], torque[2]])
 
 
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
 class Simulator:
     """Owns one compiled world, its physics state, and the renderer."""
 
@@ -242,6 +245,21 @@ class Simulator:
         d.mocap_pos[self._gimbal] = d.qpos[0:3]
         d.mocap_quat[self._gimbal] = _yaw_quat(self.yaw)
         mujoco.mj_forward(self.model, d)
+
+    def get_state(self) -> np.ndarray:
+        """The physics state that determines every later step (MuJoCo's integration state: time, qpos, qvel,
+        act, the warm start, controls and mocap poses), float64, a few hundred bytes."""
+        out = np.empty(mujoco.mj_stateSize(self.model, _STATE))
+        mujoco.mj_getState(self.model, self.data, out, _STATE)
+        return out
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Put the physics back in a state from `get_state`; the steps from it repeat those flown from it."""
+        if state.shape != (mujoco.mj_stateSize(self.model, _STATE),):
+            raise ValueError(f"a state of this world has {mujoco.mj_stateSize(self.model, _STATE)} numbers, got "
+                             f"{state.shape}")
+        mujoco.mj_setState(self.model, self.data, np.asarray(state, dtype=float), _STATE)
+        mujoco.mj_forward(self.model, self.data)
 
     def step(self, forward_velocity: float, yaw_rate: float) -> None:
         """Hold one (clipped) command for 1 / control_hz seconds of physics."""

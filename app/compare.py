@@ -1,0 +1,306 @@
+"""Comparisons and forks: two policies flying one environment side by side, and an episode forked at step t.
+
+**Two episodes stepping together.** The runner owns one `Env`. A comparison flies both episodes in that one
+simulator, alternating: each round restores episode A's physics state (`Env.get_state`, 0.8 kB, restored with
+`mj_setState` + `mj_forward`, microseconds), flies A's next step, saves its state, then does the same for B, then
+answers commands once (pause, single step and the speed limit pace the pair, not each episode). Both episodes are
+of the same world, so the compiled MuJoCo model, its textures and the renderer's GL context serve both; a second
+`Env` would compile the world and open a second GL context for nothing, and a second thread would break the
+runner's one-thread ownership of the simulator. Each rollout is `gsmn.task.rollout.rollout_steps`, the one rollout
+function one step at a time, so a comparison's episodes are the episodes `POST /api/episodes` would fly.
+
+**Forks.** `POST /api/episodes/{id}/fork` makes an episode whose steps 0..t-1 are the original's records and whose
+flight starts at the original's exact state at step t (`gsmn.task.fork`): the fork's policy acts on the same
+observation t, so with the same policy and instruction its step t is the original's too, and it ends as the
+original did.
+
+**Where they part** (`diverged_at`): the first step at which the two drones are more than 1 m apart, or at which
+one says STOP (or has already ended) and the other does not; None while they have not parted.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from app.commands import Command, Conflict, NotFound, RunnerError
+from app.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
+from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.fork import FlightSnapshots, Prefix
+from gsmn.task.instructions import InstructionError, parse_instruction
+from gsmn.task.rollout import Task, rollout_steps
+
+if TYPE_CHECKING:
+    from app.runner import Flight
+
+log = logging.getLogger("gsmn.dashboard")
+PART_DISTANCE = 1.0  # m: two drones further apart than this have parted
+MAX_COMPARISONS = 32  # kept in memory, the oldest dropped
+
+
+# -- commands -------------------------------------------------------------------------------------------------
+@dataclass
+class PolicySpec:
+    policy: str = "model"
+    checkpoint: str | None = None
+    instruction: str | None = None  # None: the comparison's
+
+
+@dataclass
+class StartComparison(Command):
+    env_id: int
+    instruction: str | None  # None: the environment's own
+    policies: list[PolicySpec]
+    preempt: bool = False
+
+
+@dataclass
+class ForkEpisode(Command):
+    episode_id: int
+    step: int
+    instruction: str | None = None  # None: the original's
+    checkpoint: str | None = None  # None: the original's model
+    policy: str | None = None  # None: the original's
+    preempt: bool = False
+
+
+# -- records --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ForkPoint:
+    """Where a fork starts: the original's flight snapshots, step t, and how much of its state applies."""
+
+    episode_id: int
+    step: int
+    snapshots: FlightSnapshots
+    prefix: Prefix
+    same_model: bool  # the fork flies the model (and kind) that flew: its keyframes apply
+    same_expert: bool  # the fork's expert follows the original expert's path: its progress applies
+    expert_task: Task | None  # the path the fork's expert follows (from the fork point, for a new instruction)
+
+
+@dataclass
+class Comparison:
+    id: int
+    episodes: tuple[Episode, Episode]
+    created: float = field(default_factory=time.time)
+
+    @property
+    def status(self) -> str:
+        statuses = {e.status for e in self.episodes}
+        for s in ("running", "paused", "queued", "failed", "cancelled"):
+            if s in statuses:
+                return s
+        return "finished"
+
+    def diverged_at(self) -> int | None:
+        a, b = self.episodes
+        return diverged_at([s.position for s in a.steps], [s.stop for s in a.steps], a.live,
+                           [s.position for s in b.steps], [s.stop for s in b.steps], b.live)
+
+
+def diverged_at(pos_a, stop_a, live_a: bool, pos_b, stop_b, live_b: bool,
+                distance: float = PART_DISTANCE) -> int | None:
+    """The first step at which two flights of one world part (see the module's docstring). `pos_*`: (x, y, ...) per
+    recorded step, `stop_*`: whether that step said STOP, `live_*`: whether more steps may come."""
+    n = min(len(pos_a), len(pos_b))
+    for t in range(n):
+        if float(np.hypot(pos_a[t][0] - pos_b[t][0], pos_a[t][1] - pos_b[t][1])) > distance:
+            return t
+        if stop_a[t] != stop_b[t]:
+            return t
+    if len(pos_a) != len(pos_b):  # the shorter one ended (horizon or STOP at n - 1 on both is not a part)
+        shorter_live = live_a if len(pos_a) < len(pos_b) else live_b
+        if not shorter_live:
+            return n
+    return None
+
+
+# -- the runner's part ----------------------------------------------------------------------------------------
+class ComparingRunner:
+    """The commands and the paired flight of `app.runner.Runner` for comparisons and forks (a mixin: the runner
+    thread calls these like its own `_do_*` handlers)."""
+
+    comparisons: OrderedDict[int, Comparison]
+    live_comparison: Comparison | None = None
+
+    def _comparison_store(self) -> OrderedDict[int, Comparison]:
+        if not hasattr(self, "comparisons"):
+            self.comparisons = OrderedDict()
+            self._next_comparison = 1
+        return self.comparisons
+
+    def comparison(self, comparison_id: int) -> Comparison | None:
+        return self._comparison_store().get(comparison_id)
+
+    def _pending_pair(self, episode: Episode) -> Comparison | None:
+        return next((c for c in self._pending if isinstance(c, Comparison) and episode in c.episodes), None)
+
+    def _flying_in_pair(self, episode: Episode) -> bool:
+        return self.live_comparison is not None and episode in self.live_comparison.episodes
+
+    # -- commands ---------------------------------------------------------------------------------------------
+    def _do_StartComparison(self, c: StartComparison) -> Comparison:
+        if len(c.policies) != 2:
+            raise RunnerError(f"a comparison flies two policies, got {len(c.policies)}")
+        if not c.preempt:
+            self._check_queue()
+        episodes = tuple(self._new_episode(c.env_id, spec.instruction or c.instruction, spec.policy,
+                                           spec.checkpoint) for spec in c.policies)
+        store = self._comparison_store()
+        comparison = Comparison(self._next_comparison, episodes)
+        self._next_comparison += 1
+        for e in episodes:
+            e.comparison = comparison.id
+            self.episodes.add(e)
+        store[comparison.id] = comparison
+        while len(store) > MAX_COMPARISONS:
+            store.popitem(last=False)
+        self._enqueue(c, comparison, comparison)
+        return comparison
+
+    def _do_ForkEpisode(self, c: ForkEpisode) -> Episode:
+        from app.runner import POLICIES, _straight_task
+
+        original = self.episodes.get(c.episode_id)
+        if original is None:
+            raise NotFound(self.episodes.missing(c.episode_id))
+        if original.live:
+            raise Conflict(f"episode {original.id} is {original.status}: fork it once it has ended")
+        snapshots: FlightSnapshots | None = original.snapshots
+        n = min(len(original.steps), len(snapshots.states)) if snapshots is not None else 0
+        if n == 0:
+            raise Conflict(f"episode {original.id} has no recorded state to fork from: the simulator states a fork starts "
+                           f"from are kept in memory only, so an episode kept from before a restart cannot be forked; "
+                           f"fly it again and fork that")
+        if not 0 <= c.step < n:
+            raise RunnerError(f"step {c.step} is not recorded: episode {original.id} has steps 0 to {n - 1}")
+        policy = c.policy or original.policy
+        if policy not in POLICIES:
+            raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
+        world = original.task.world
+        if c.instruction is None or not c.instruction.strip() \
+                or c.instruction.strip() == original.instruction:
+            instruction, task = original.task.instruction, original.task
+        else:
+            try:
+                instruction = parse_instruction(c.instruction, world)
+            except InstructionError as e:
+                raise RunnerError(str(e)) from e
+            try:
+                task = Task(world, instruction, demonstration_path(world, instruction.goal, self.config.expert))
+            except DemoPathError:
+                task = _straight_task(world, instruction, self.config.expert.waypoint_spacing)
+        same_instruction = instruction.text == original.instruction
+        checkpoint = c.checkpoint
+        if checkpoint is None and original.checkpoint is not None and original.checkpoint in self.models:
+            checkpoint = original.checkpoint
+        # checked with the original's instruction (whose path exists); the fork's own task replaces it
+        episode = self._new_episode(original.env_id, original.instruction, policy, checkpoint,
+                                    check_queue=not c.preempt)
+        episode.task = task
+        plain = ("model", "expert")  # the expert flies with the plain model watching
+        same_model = (episode.checkpoint is not None and episode.checkpoint == original.checkpoint
+                      and (policy == original.policy or (policy in plain and original.policy in plain)))
+        t = c.step
+        expert_task, same_expert = None, False
+        if policy == "expert":
+            prior = original.fork.expert_task if original.fork is not None else None
+            if same_instruction and original.policy == "expert" and snapshots.has_expert_progress(t):
+                expert_task, same_expert = prior or original.task, True
+            else:
+                expert_task = _expert_task_from(original, t, task, self.config)
+        steps = original.steps[:t]
+        prefix = Prefix(tuple((s.position[0], s.position[1], s.position[2], s.yaw) for s in steps),
+                        tuple((s.v, s.omega, s.stop) for s in steps), tuple(s.stop_probability for s in steps),
+                        tuple(None for _ in steps))
+        episode.fork = ForkPoint(original.id, t, snapshots, prefix, same_model, same_expert, expert_task)
+        episode.steps = list(steps)
+        self.episodes.add(episode)
+        self._enqueue(c, episode, episode)
+        return episode
+
+    # -- flying a pair ----------------------------------------------------------------------------------------
+    def _fly_pair(self, comparison: Comparison) -> None:
+        from app.runner import _Unwind
+
+        flights: list[Flight] = [self._flight(e) for e in comparison.episodes]
+        radius = self.config.task.success_radius
+        gens = []
+        for f in flights:
+            f.episode.snapshots = FlightSnapshots()
+            gens.append(rollout_steps(self.env, f.policy, f.episode.task, f.episode.horizon,
+                                      on_step=lambda obs, action, f=f: self._on_step(f.episode, obs, action, f,
+                                                                                     pace=False),
+                                      success_radius=radius))
+        states: list[Any] = [None, None]
+        done = [False, False]
+        self.live, self.live_comparison = comparison.episodes[0], comparison
+        self.paused = comparison.episodes[0].start_paused
+        self._step_budget = 0
+        self._last_step = 0.0
+        for f in flights:
+            f.episode.status = PAUSED if self.paused else RUNNING
+            f.episode.started = time.perf_counter()
+            self._notify("on_episode_start", f.episode)
+        try:
+            while not all(done):
+                for i, f in enumerate(flights):
+                    if done[i]:
+                        continue
+                    if states[i] is not None:
+                        self.env.set_state(states[i])
+                    try:
+                        next(gens[i])
+                        states[i] = self.env.get_state()
+                    except StopIteration as stop:
+                        done[i] = True
+                        last = f.episode.steps[-1] if f.episode.steps else None
+                        f.episode.result = EpisodeResult.of(stop.value,
+                                                            last.decisive_stop_probability if last else None)
+                        f.episode.status = FINISHED
+                        f.episode.finished = time.perf_counter()
+                    except _Unwind:
+                        raise
+                    except Exception as e:  # noqa: BLE001 - one episode fails, the other flies on
+                        log.error("episode %d failed:\n%s", f.episode.id, traceback.format_exc())
+                        done[i] = True
+                        f.episode.status, f.episode.error = FAILED, f"{type(e).__name__}: {e}"
+                        f.episode.finished = time.perf_counter()
+                if not all(done):
+                    live = next(f.episode for f, d in zip(flights, done, strict=True) if not d)
+                    self._between_steps(live)
+                    for f, d in zip(flights, done, strict=True):  # pause and resume show on both
+                        if not d:
+                            f.episode.status = PAUSED if self.paused else RUNNING
+        except _Unwind:
+            for f in flights:
+                if f.episode.status in LIVE:
+                    f.episode.status = CANCELLED
+        finally:
+            for g in gens:
+                g.close()
+            for f in flights:
+                if f.episode.finished is None:
+                    f.episode.finished = time.perf_counter()
+            self.live, self.live_comparison = None, None
+            self.paused = False
+            for f in flights:
+                self._notify("on_episode_end", f.episode)
+
+
+def _expert_task_from(original: Episode, t: int, task: Task, config) -> Task:
+    """The fork's expert path: from the drone's pose at step t to the fork's goal (the demonstration planner, with
+    the world's start moved there), or straight there if the planner finds none."""
+    s = original.steps[t]
+    world = replace(task.world, start_x=float(s.position[0]), start_y=float(s.position[1]), start_yaw=float(s.yaw))
+    try:
+        path = demonstration_path(world, task.instruction.goal, config.expert)
+    except DemoPathError:
+        path = resample(np.stack([world.start_position, task.instruction.goal]), config.expert.waypoint_spacing)
+    return Task(task.world, task.instruction, path)

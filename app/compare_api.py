@@ -1,0 +1,94 @@
+"""The HTTP routes of comparisons and forks (`app.compare`): `POST /api/comparisons`, `GET /api/comparisons`,
+`GET /api/comparisons/{id}`, `POST /api/episodes/{id}/fork`."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import FastAPI
+from pydantic import BaseModel, Field
+
+from app.api import EpisodeCreated, EpisodeSummary, summary
+from app.commands import NotFound
+from app.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
+from app.schema import EnvId, Strict, Text, path_id, responses
+
+COMMAND_TIMEOUT = 60.0
+MAX_STEP = 100_000
+Policy = Literal["model", "mirror", "expert"]
+ComparisonId = Annotated[int, path_id("comparison")]
+EpisodeId = Annotated[int, path_id("episode")]
+
+
+class PolicySpecModel(Strict):
+    policy: Policy = Field("model", description="who flies, as in POST /api/episodes")
+    checkpoint: Text | None = Field(None, max_length=1000, description="a checkpoint name or folder; omitted: the "
+                                    "default")
+    instruction: Text | None = Field(None, max_length=500, description="this side's own instruction; omitted: the "
+                                     "comparison's")
+
+
+class ComparisonRequest(Strict):
+    env_id: EnvId = Field(..., examples=[70])
+    instruction: Text | None = Field(None, max_length=500, description="omitted: the environment's own")
+    policies: list[PolicySpecModel] = Field(..., min_length=2, max_length=2, description="the two sides")
+
+
+class ComparisonCreated(BaseModel):
+    id: int
+    episodes: list[int]
+
+
+class ForkRequest(Strict):
+    step: int = Field(..., ge=0, le=MAX_STEP, description="the step to fork at: the fork's steps 0..step-1 are the "
+                      "original's, and it flies on from the original's exact state at this step")
+    instruction: Text | None = Field(None, max_length=500, description="omitted: the original's")
+    checkpoint: Text | None = Field(None, max_length=1000, description="omitted: the original's model")
+    policy: Policy | None = Field(None, description="omitted: the original's")
+
+
+class ComparisonModel(BaseModel):
+    id: int
+    status: str
+    env_id: int
+    episodes: list[EpisodeSummary]
+    diverged_at: int | None = Field(description="the first step at which the drones are more than 1 m apart, or "
+                                    "one says STOP and the other does not; null while they have not parted")
+    succeeded: list[int] = Field(description="the ids of the episodes that succeeded")
+
+
+def add_compare_routes(app: FastAPI, runner) -> None:
+
+    def answer(c: Comparison) -> ComparisonModel:
+        return ComparisonModel(id=c.id, status=c.status, env_id=c.episodes[0].env_id,
+                               episodes=[summary(e) for e in c.episodes], diverged_at=c.diverged_at(),
+                               succeeded=[e.id for e in c.episodes if e.result is not None and e.result.success])
+
+    @app.post("/api/comparisons", response_model=ComparisonCreated, status_code=201,
+              responses=responses(400, 409, 422, 503),
+              summary="Fly one environment with two policies side by side (they step together)")
+    def create_comparison(request: ComparisonRequest) -> ComparisonCreated:
+        specs = [PolicySpec(p.policy, p.checkpoint, p.instruction) for p in request.policies]
+        c = runner.call(StartComparison(request.env_id, request.instruction, specs), COMMAND_TIMEOUT)
+        return ComparisonCreated(id=c.id, episodes=[e.id for e in c.episodes])
+
+    @app.get("/api/comparisons", response_model=list[ComparisonModel], summary="Comparisons kept in memory")
+    def list_comparisons() -> list[ComparisonModel]:
+        return [answer(c) for c in list(runner._comparison_store().values())]
+
+    @app.get("/api/comparisons/{comparison_id}", response_model=ComparisonModel, responses=responses(404, 422),
+             summary="Both episodes' status and results, and the step at which they part")
+    def get_comparison(comparison_id: ComparisonId) -> ComparisonModel:
+        c = runner.comparison(comparison_id)
+        if c is None:
+            raise NotFound(f"no comparison {comparison_id} (comparisons are kept in memory, the oldest dropped)")
+        return answer(c)
+
+    @app.post("/api/episodes/{episode_id}/fork", response_model=EpisodeCreated, status_code=201,
+              responses=responses(400, 404, 409, 422, 503),
+              summary="Fly on from step t of a finished episode, with another instruction, policy or checkpoint")
+    def fork(episode_id: EpisodeId, request: ForkRequest):
+        e = runner.call(ForkEpisode(episode_id, request.step, request.instruction, request.checkpoint,
+                                    request.policy), COMMAND_TIMEOUT)
+        return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
+                              policy=e.policy)
