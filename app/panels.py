@@ -346,8 +346,9 @@ def cell_marks_html(cells: list[tuple[int, int, tuple[int, int, int]]], size: in
 
 
 # On a short screen (1280 x 800) the camera and the four map panels must fit the panel's height with the tab bar
-# and the readout: the camera at most 26 % of the window's height, each map (a square) at most 20 %.
-CAMERA_MAX_HEIGHT, MAP_MAX_HEIGHT = "26vh", "20vh"
+# and the readout: the camera at most 23 % of the window's height, each map (a square) at most 18 % (the six tabs
+# take two rows of the panel's 420 px, and the semantic map's legend up to five lines).
+CAMERA_MAX_HEIGHT, MAP_MAX_HEIGHT = "23vh", "18vh"
 
 
 def camera_html(jpeg: bytes) -> str:
