@@ -67,9 +67,7 @@ class Presenter:
 
     def _intro(self) -> list:
         """The page's title and introduction (the card's instruction replaces them)."""
-        root = self.server.gui._container_handle_from_uuid.get("root")
-        children = list(getattr(root, "_children", {}).values())
-        return [h for h in children if str(getattr(h, "content", "")).startswith("## GSMN dashboard")]
+        return [self.viewer.intro]
 
     def set(self, on: bool) -> None:
         """Presenter mode on or off, for every tab."""

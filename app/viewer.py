@@ -186,8 +186,8 @@ class Viewer(RunnerListener):
         gui.configure_theme(dark_mode=False, show_logo=False, brand_color=(40, 110, 245))
         gui.main_panel.dock_left()
         gui.main_panel.set_width(330)
-        gui.add_markdown("**GSMN dashboard**: follow an instruction with the Grounded Semantic Mapping Network "
-                         "(Blukis et al., RSS 2018) and watch what it maps, grounds and plans.")
+        self.intro = gui.add_markdown("**GSMN dashboard**: follow an instruction with the Grounded Semantic Mapping "
+                                      "Network (Blukis et al., RSS 2018) and watch what it maps, grounds and plans.")
         self.checkpoint_note = gui.add_markdown(self._checkpoint_text())
 
         with gui.add_folder("Episode"):

@@ -160,6 +160,7 @@ def test_presenter_mode_by_link_at_1280x800(dashboard, browser):
     assert box["x"] >= 0 and box["x"] + box["width"] <= 1280 and box["y"] + box["height"] <= 800
     assert page.get_by_text("Where it thinks the goal is").first.is_visible()
     assert not page.get_by_text("Environment id").first.is_visible()  # developer controls hidden
+    assert not page.get_by_text("follow an instruction with the Grounded").first.is_visible()  # and the introduction
     assert not page.get_by_role("tab", name="Failures").is_visible()
     # off again: everything back
     dashboard.presenter.set(False)
