@@ -31,11 +31,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from app.browser import CHROMIUM_ARGS, field
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
 
 CLICK_TO_FRAME = """async (label) => {
     const old = document.querySelector('.gsmn-maps')?.dataset.episode ?? '';
@@ -85,11 +85,6 @@ COUNT_FRAMES = """() => {
 }"""
 
 
-def field(page, label: str):
-    import re
-
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 def dismiss_notifications(page) -> None:

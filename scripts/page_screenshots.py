@@ -16,14 +16,11 @@ from pathlib import Path
 
 from PIL import Image
 
+from app.browser import field
+
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run"]
 
 
-def field(page, label: str):
-    import re
-
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 def dismiss_notifications(page) -> None:

@@ -7,19 +7,14 @@ Needs the `playwright` package and a Chromium, as tests/test_dashboard_browser.p
 
 from __future__ import annotations
 
-import os
-import re
-import shutil
 import time
 
 import playwright.sync_api as playwright_api
 import pytest
 
+from app.browser import CHROMIUM, CHROMIUM_ARGS, field
 from app.fixtures import make_untrained_checkpoint
 
-CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
 HORIZON = 40
 
 
@@ -50,9 +45,6 @@ def page(dashboard):
         browser.close()
 
 
-def field(page, label: str):
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 def choose(page, label: str, option: str) -> None:

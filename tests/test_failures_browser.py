@@ -10,28 +10,20 @@ or a Chromium.
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 import time
 from pathlib import Path
 
 import playwright.sync_api as playwright_api
 import pytest
 
+from app.browser import CHROMIUM, CHROMIUM_ARGS, field
 from app.fixtures import make_untrained_checkpoint
 from app.panels import region_text, steps_in_region
 
-CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
 HORIZON = 40
 
 
-def field(page, label: str):
-    """The input of a labelled viser control (as in tests/test_dashboard_browser.py)."""
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 @pytest.fixture(scope="module")

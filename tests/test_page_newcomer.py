@@ -13,20 +13,16 @@ tests/test_dashboard_browser.py (it fails, not skips, without one).
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 import time
 
 import numpy as np
 import playwright.sync_api as playwright_api
 import pytest
 
+from app.browser import CHROMIUM, CHROMIUM_ARGS, field
 from app.fixtures import make_untrained_checkpoint
 
-CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
 HORIZON = 40
 ENV = 76  # two palm trees
 
@@ -57,10 +53,6 @@ def page(dashboard):
         browser.close()
 
 
-def field(page, label: str):
-    """The input of a labelled viser control (viser's <label for> does not point at text inputs)."""
-    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
-        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
 
 
 def until(predicate, timeout: float = 60.0, what: str = ""):

@@ -1,0 +1,18 @@
+"""Headless Chromium for the page's browser tests, screenshots and benchmark: which browser, its flags, and how to
+find a viser control's input by its label."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+
+CHROMIUM = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--disable-quic", "--no-first-run", "--enable-unsafe-swiftshader"]
+
+
+def field(page, label: str):
+    """The input of a labelled viser control (viser's <label for> does not point at text inputs)."""
+    return page.locator("label").filter(has_text=re.compile(f"^{re.escape(label)}$")).first.locator(
+        "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").first
