@@ -49,6 +49,9 @@ class TooLarge(RunnerError):
 @dataclass
 class Command:
     future: Future = field(default_factory=Future, init=False, repr=False)
+    # who posted it: a browser tab's id (`app.viewer.Viewer.origin`), None for the HTTP API; the episodes and
+    # worlds it makes carry it, so each tab knows its own from those started elsewhere
+    origin: str | None = field(default=None, kw_only=True)
 
 
 @dataclass
@@ -112,6 +115,7 @@ class WorldShown:
     position: tuple[float, float, float]
     yaw: float
     T_world_camera: np.ndarray
+    origin: str | None = None  # the tab that asked for it (None: the API, or the server at start)
 
 
 @dataclass(frozen=True)

@@ -175,9 +175,9 @@ class ComparingRunner:
         snapshots: FlightSnapshots | None = original.snapshots
         n = min(len(original.steps), len(snapshots.states)) if snapshots is not None else 0
         if n == 0:
-            raise Conflict(f"episode {original.id} has no recorded state to fork from: the simulator states a fork starts "
-                           f"from are kept in memory only, so an episode kept from before a restart cannot be forked; "
-                           f"fly it again and fork that")
+            raise Conflict(f"episode {original.id} has no recorded state to fork from: the simulator states a fork "
+                           f"starts from are kept in memory only, so an episode kept from before a restart cannot be "
+                           f"forked; fly it again and fork that")
         if not 0 <= c.step < n:
             raise RunnerError(f"step {c.step} is not recorded: episode {original.id} has steps 0 to {n - 1}")
         policy = c.policy or original.policy

@@ -175,14 +175,14 @@ class CompareView:
         """Take the other drone, its path and its panels away (another world, or an episode without a partner)."""
         if self.partner_drawn:
             for name in ("/partner", "/partner_flown", "/parted"):
-                self.viewer.server.scene.remove_by_name(name)
+                self.viewer.client.scene.remove_by_name(name)
             self.partner_drawn = False
             self.summary.content = "No comparison shown: run two policies side by side, or fork an episode."
             self.partner_camera.content = self.partner_maps.content = ""
 
     def render(self, episode: Episode, t: int) -> None:
         partner = self.partner_of(episode)
-        scene = self.viewer.server.scene
+        scene = self.viewer.client.scene
         if partner is None or not partner.steps:
             self.clear()
             self._plot_figures(episode)
@@ -191,7 +191,7 @@ class CompareView:
         record = partner.steps[pt]
         part = self.parting(episode, partner)
         path = np.array([s.position for s in partner.steps[: pt + 1]], np.float32)
-        with self.viewer.server.atomic():
+        with self.viewer.client.atomic():
             s = self.viewer.scene
             scene.add_camera_frustum("/partner/camera", fov=s.vfov, aspect=s.aspect, scale=1.6, thickness=0.05,
                                      image=None, wxyz=R_to_wxyz(record.T_world_camera[:3, :3]),

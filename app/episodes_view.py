@@ -5,13 +5,15 @@ shown ("Copy link") and downloads the episode as HTML or GIF; and the link read 
 **Links.** viser gives the server no client's URL, so the page reads its own: an element of the page holds a small
 script (an image's onerror handler, which viser's HTML element runs) that writes `location.search` into a hidden
 text field, and the field's update reaches the server with its client. `/?episode=123&step=40&layers=goal,relevance`
-then opens episode 123 at step 40 with those ground layers (and `presenter=1` turns presenter mode on). The view is
-the page's shared one (every tab sees it): opening a link moves it for everyone looking, as any click does.
+then opens episode 123 at step 40 with those ground layers (and `presenter=1` turns presenter mode on), in the tab
+that opened it only: every tab has its own view (`app.viewer`). Opening a kept episode, from the list or a link,
+unticks the tab's "Show episodes started elsewhere", so that another tab's Run does not take it away.
 A link to an episode no longer kept says so, in the status line and as a notification to the tab that opened it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import html
 import logging
 import threading
@@ -81,12 +83,12 @@ def row_label(row: dict) -> str:
 
 
 class EpisodesView(RunnerListener):
-    """The Episodes tab and the Share folder, beside `viewer` (app.viewer.Viewer) on its server."""
+    """The Episodes tab and the Share folder of one tab, beside its `viewer` (app.viewer.Viewer)."""
 
     def __init__(self, viewer, keeper, presenter=None):
         self.viewer, self.keeper = viewer, keeper
         self.store, self.db = keeper.store, keeper.db
-        self.server: viser.ViserServer = viewer.server
+        self.client: viser.ClientHandle = viewer.client
         self.presenter = presenter  # app.presenter.Presenter, turned on by a link's presenter=1
         self.rows: list[dict] = []
         self.selected: int | None = None
@@ -101,11 +103,13 @@ class EpisodesView(RunnerListener):
 
     def close(self) -> None:
         self._closing = True
+        with contextlib.suppress(ValueError):
+            self.viewer.runner.listeners.remove(self)
         self.thread.join(timeout=5)
 
     # -- the GUI ----------------------------------------------------------------------------------------------
     def _build(self) -> None:
-        gui = self.server.gui
+        gui = self.client.gui
         self.link_field = gui.add_text(LINK_FIELD, "")
         self.link_reader = gui.add_html(READ_LINK)
         self.link_field.on_update(self._on_link)
@@ -204,8 +208,10 @@ class EpisodesView(RunnerListener):
             for name, box in viewer.layer_boxes.items():
                 box.value = name in layers
             viewer._events.put(OptionsChanged())
+        if viewer.watch_others.value:  # a replay of one's own: another tab's Run does not take it away
+            viewer.watch_others.value = False
         if episode is not viewer.view.episode:
-            viewer._events.put(EpisodeStarted(episode))
+            viewer._events.put(EpisodeStarted(episode, opened=True))
             if not episode.live:
                 viewer._events.put(EpisodeEnded(episode))
         last = len(episode.steps) - 1

@@ -9,6 +9,7 @@ second, so a running job never slows the live view. What the tabs say is `app.jo
 
 from __future__ import annotations
 
+import contextlib
 import html
 import logging
 import math
@@ -67,7 +68,7 @@ STAGE_OF_TITLE = {STAGE_TITLES[k]: k for k in STAGES}  # the filter shows the ba
 class JobsView(RunnerListener):
     def __init__(self, viewer, jobs: JobManager):
         self.viewer, self.jobs = viewer, jobs
-        self.server: viser.ViserServer = viewer.server
+        self.client: viser.ClientHandle = viewer.client
         self.runner = viewer.runner
         self._events: queue.Queue = queue.Queue()
         self._closing = False
@@ -82,7 +83,8 @@ class JobsView(RunnerListener):
         self._run_choices: dict[str, int] = {}
         self._selected_failures: list[int] = []  # the failures the browser's filters select, for a run
         self._build()
-        jobs.listeners.append(lambda kind, job_id: self._events.put(("job", kind, job_id)))
+        self._on_job = lambda kind, job_id: self._events.put(("job", kind, job_id))
+        jobs.listeners.append(self._on_job)
         self.runner.listeners.append(self)
         self.thread = threading.Thread(target=self._loop, name="gsmn-jobs-view", daemon=True)
         self.thread.start()
@@ -90,6 +92,9 @@ class JobsView(RunnerListener):
 
     def close(self) -> None:
         self._closing = True
+        for listeners, listener in ((self.jobs.listeners, self._on_job), (self.runner.listeners, self)):
+            with contextlib.suppress(ValueError):
+                listeners.remove(listener)
         self._events.put(("close",))
         self.thread.join(timeout=5)
 
@@ -100,7 +105,7 @@ class JobsView(RunnerListener):
 
     # -- the GUI ----------------------------------------------------------------------------------------------
     def _build(self) -> None:
-        gui, panel = self.server.gui, self.viewer.panel
+        gui, panel = self.client.gui, self.viewer.panel
         with panel.add_tab("Failures", viser.Icon.BUG):
             with gui.add_folder("Evaluate a checkpoint"):
                 self.eval_checkpoint = gui.add_dropdown("Checkpoint", self._checkpoint_choices(expert=True))
@@ -387,7 +392,8 @@ class JobsView(RunnerListener):
             return
         self.replay_note = "Flying it again in the live view..."
         self.detail.content = episode_html(row, self.replay_note)
-        future = self.runner.post(StartEpisode(row.env_id, None, policy, checkpoint, preempt=True))
+        future = self.runner.post(StartEpisode(row.env_id, None, policy, checkpoint, preempt=True,
+                                                origin=self.viewer.origin))
 
         def started(f, row=row) -> None:
             try:

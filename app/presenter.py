@@ -8,8 +8,9 @@ projector. A "Presenter mode" box at the top of the controls (or `?presenter=1` 
   choices, speed, "follow", the counterfactual and ground-layer folders, and the right-hand panel of developer
   panels (its camera and maps are in the card). Run, the instruction, the playback controls and the timeline stay.
 
-Turning it off shows everything as it was. Like the rest of the page's state, the mode is the page's shared one:
-every open tab shows it.
+Turning it off shows everything as it was. The mode is the tab's own (like the rest of its view): a projector's tab
+can be in presenter mode while a laptop's is not. It also unticks "Show episodes started elsewhere", so that nobody
+else's Run moves what the audience sees (turning presenter mode off puts the box back as it was).
 """
 
 from __future__ import annotations
@@ -30,10 +31,12 @@ from app.export import result_line, step_layers
 from app.panels import cell_marks_html
 
 log = logging.getLogger("gsmn.dashboard")
-HIDDEN = ("checkpoint_note", "env_number", "split", "env_buttons", "policy", "mirror", "follow", "speed")
-HIDDEN_FOLDERS = ("Counterfactual", "Layers on the ground")  # folder labels starting so
+# the result table too: the card says the result, and without the table Run and the timeline fit on a 1280x800 screen
+HIDDEN = ("checkpoint_note", "env_number", "split", "env_buttons", "policy", "mirror", "follow", "watch_others",
+          "speed", "shared_note", "status", "result", "side_chips")
+HIDDEN_FOLDERS = ("Counterfactual", "Layers on the ground", "Compare and fork", "Share this step")  # labels starting so
 STYLE = "<style>html{font-size:19px !important}</style>"
-WIDE = 640  # px, the controls' width in presenter mode (330 otherwise)
+WIDE = 720  # px, the controls' width in presenter mode (330 otherwise): the 3D view keeps 560 px of a 1280 screen
 LABEL = "font-size:0.8rem;font-weight:600;line-height:1.2;margin-bottom:2px"
 PRESENTER_TITLES = {"semantic": "What it has mapped", "relevance": "Where it thinks the landmark is",
                     "goal": "Where it thinks the goal is"}
@@ -42,11 +45,12 @@ PRESENTER_TITLES = {"semantic": "What it has mapped", "relevance": "Where it thi
 class Presenter:
     def __init__(self, viewer):
         self.viewer = viewer
-        self.server: viser.ViserServer = viewer.server
+        self.client: viser.ClientHandle = viewer.client
         self.on = False
+        self._watched: bool | None = None  # the "started elsewhere" box before presenter mode unticked it
         self._closing = False
         self._shown: tuple | None = None
-        gui = self.server.gui
+        gui = self.client.gui
         order = viewer.checkpoint_note.order + 0.01  # right under the title, above the Episode folder
         self.toggle = gui.add_checkbox("Presenter mode", False, order=order,
                                        hint="large text, the instruction and result up front, the maps in plain "
@@ -62,7 +66,7 @@ class Presenter:
         self.thread.join(timeout=5)
 
     def _folders(self) -> list[GuiFolderHandle]:
-        handles = list(self.server.gui._container_handle_from_uuid.values())
+        handles = list(self.client.gui._container_handle_from_uuid.values())
         return [h for h in handles if isinstance(h, GuiFolderHandle) and h.label.startswith(HIDDEN_FOLDERS)]
 
     def _intro(self) -> list:
@@ -70,12 +74,22 @@ class Presenter:
         return [self.viewer.intro]
 
     def set(self, on: bool) -> None:
-        """Presenter mode on or off, for every tab."""
+        """Presenter mode on or off, in this tab."""
+        if on == self.on and self.toggle.value == on:
+            return
         self.on = on
         if self.toggle.value != on:
             self.toggle.value = on
-        v, gui = self.viewer, self.server.gui
-        with self.server.atomic():
+        v, gui = self.viewer, self.client.gui
+        from app.viewer_events import WatchSet
+
+        if on:
+            self._watched = bool(v.watch_others.value)
+            v.watch_others.value = False
+        elif self._watched is not None:
+            v.watch_others.value, self._watched = self._watched, None
+            v._events.put(WatchSet())
+        with self.client.atomic():
             for name in HIDDEN:
                 getattr(v, name).visible = not on
             for handle in (*self._folders(), *self._intro()):
@@ -143,17 +157,21 @@ def card_html(episode, t: int, heads, cell_of=None) -> str:
                      "width:100%;display:block;image-rendering:pixelated", f"data-layer='{name}'")
         cells[name] = (f"<div><div style='{LABEL}'>{html.escape(PRESENTER_TITLES[name])}</div>"
                        f"<div style='position:relative;border-radius:4px;overflow:hidden'>{image}{marks}</div>"
-                       + (legends.get("semantic", "") if name == "semantic" else "") + "</div>")
+                       + "</div>")
     camera = _img(record.camera_jpeg, "image/jpeg", "width:100%;display:block;border-radius:4px")
-    key = ("<div style='font-size:0.75rem;line-height:1.35;color:#333;align-self:center'>Yellow: likely; dark blue: "
+    key = ("<div style='grid-column:1/-1;font-size:0.75rem;line-height:1.35;color:#333'>Yellow: likely; dark blue: "
            "unlikely. White square: the drone; red square: the goal. Maps seen from above, north up.</div>")
-    grid = (f"<div style='grid-column:span 2'><div style='{LABEL}'>What the drone sees</div>{camera}</div>"
-            + cells.get("goal", "") + cells.get("semantic", "") + cells.get("relevance", "") + (key if maps else
-            "<div style='font-size:0.9rem;opacity:.7'>No model watched this flight: no maps.</div>"))
-    return (f"<div class='gsmn-presenter' data-episode='{episode.id}' data-step='{t}' style='padding:2px 0'>"
+    # one row, so that the card leaves Run and the timeline on a 1280x800 screen: the camera, then the maps
+    grid = (f"<div><div style='{LABEL}'>What the drone sees</div>{camera}</div>"
+            + cells.get("goal", "") + cells.get("relevance", "") + cells.get("semantic", "")
+            + (f"<div style='grid-column:1/-1'>{legends.get('semantic', '')}</div>" if "semantic" in maps else "")
+            + (key if maps else
+            "<div style='grid-column:span 3;font-size:0.9rem;opacity:.7'>No model watched this flight: no maps.</div>"))
+    return (f"<div class='gsmn-presenter' data-episode='{episode.id}' data-step='{t}' style='padding:2px 12px 2px 0'>"
             f"<div class='gsmn-presenter-instruction' style='font-size:1.5rem;font-weight:700;line-height:1.2'>"
             f"\u201c{html.escape(episode.instruction)}\u201d</div>{verdict}"
             f"<div style='font-size:0.85rem;color:#444;margin:2px 0 6px'>Step {t} of {len(episode.steps) - 1} · "
             f"environment {episode.env_id}</div>"
-            f"<div style='display:grid;grid-template-columns:repeat(3,minmax(0,1fr));gap:8px;align-items:end'>"
+            "<div style='display:grid;grid-template-columns:minmax(0,1.5fr) repeat(3,minmax(0,1fr));gap:8px;"
+            "align-items:start'>"
             f"{grid}</div></div>")

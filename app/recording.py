@@ -130,6 +130,7 @@ class Episode:
     snapshots: Any = None  # gsmn.task.fork.FlightSnapshots once it flies
     fork: Any = None  # app.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
     comparison: int | None = None  # the comparison it flies in (app.compare)
+    origin: str | None = None  # the browser tab that started it (app.commands.Command.origin); None: the API
 
     @property
     def env_id(self) -> int:

@@ -152,6 +152,8 @@ class Runner(ComparingRunner):
         self._ready: Future = Future()
         self._last_step = 0.0
         self.env: Env | None = None
+        self.preview_env: Env | None = None  # renders a world asked for while an episode flies (made when needed)
+        self._origin: str | None = None  # the origin of the command being done (app.commands.Command.origin)
         self.thread = threading.Thread(target=self._main, name="gsmn-runner", daemon=True)
 
     # -- the outside ------------------------------------------------------------------------------------------
@@ -241,8 +243,9 @@ class Runner(ComparingRunner):
         finally:
             for command in self._drain():
                 command.future.set_exception(Conflict("the dashboard is shutting down"))
-            if self.env is not None:
-                self.env.close()
+            for env in (self.env, self.preview_env):
+                if env is not None:
+                    env.close()
 
     def _drain(self) -> list[Command]:
         out = list(self._after)
@@ -269,6 +272,7 @@ class Runner(ComparingRunner):
     def _handle(self, command: Command) -> None:
         """Do one command and answer its future. Inside a live episode it may raise _Unwind (after answering)."""
         handler = getattr(self, "_do_" + type(command).__name__)
+        self._origin = command.origin
         try:
             result = handler(command)
         except _Unwind:
@@ -352,18 +356,23 @@ class Runner(ComparingRunner):
             raise RunnerError(f"env_id must be between 0 and {MAX_ENV_ID}, got {env_id}")
 
     def _do_ShowEnv(self, c: ShowEnv) -> WorldShown:
+        """A world at its start, for the tab that asked. While an episode flies (maybe another tab's) it is
+        rendered by a second simulator between two steps, so showing a world never ends anyone's episode."""
         self._check_env_id(c.env_id)
-        if self.live is not None:  # another world replaces the live episode
-            self._after.append(c)
-            raise _Unwind
         world = world_for_env(int(c.env_id), self.config.world)
         try:
             task = task_for_env(int(c.env_id), self.config)
         except (DemoPathError, InstructionError):
             task = None
-        obs = self.env.reset(world.env_id, task.instruction.text if task else None, world)
+        if self.live is not None:
+            if self.preview_env is None:
+                self.preview_env = Env(self.config, self.env.catalogue)
+            env = self.preview_env
+        else:
+            env = self.env
+        obs = env.reset(world.env_id, task.instruction.text if task else None, world)
         shown = WorldShown(world, task, obs.image, tuple(float(v) for v in obs.pose.position), float(obs.pose.yaw),
-                           obs.T_world_camera.astype(np.float32))
+                           obs.T_world_camera.astype(np.float32), origin=c.origin)
         self.shown = shown
         self._notify("on_world", shown)
         return shown
@@ -431,7 +440,7 @@ class Runner(ComparingRunner):
         episode = Episode(id=self.episodes.new_id(), task=task, policy=c.policy,
                           system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
-                          horizon=self.config.task.horizon, start_paused=c.paused)
+                          horizon=self.config.task.horizon, start_paused=c.paused, origin=self._origin)
         return episode
 
     def _do_Pause(self, c: Pause) -> bool:

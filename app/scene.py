@@ -202,12 +202,12 @@ def set_frustum_jpeg(handle: viser.CameraFrustumHandle, jpeg: bytes) -> None:
 
 
 class SceneView:
-    """The dynamic parts of the scene, by name. All methods expect to be called inside `server.atomic()`."""
+    """The dynamic parts of one tab's scene, by name. All methods expect to be called inside `client.atomic()`.
+    `client`: a viser ClientHandle (or the server, for a scene every tab shares)."""
 
-    def __init__(self, server: viser.ViserServer, catalogue: tuple[AssetModel, ...], success_radius: float,
-                 vfov_deg: float, aspect: float):
-        self.server = server
-        self.scene = server.scene
+    def __init__(self, client: viser.ClientHandle | viser.ViserServer, catalogue: tuple[AssetModel, ...],
+                 success_radius: float, vfov_deg: float, aspect: float):
+        self.scene = client.scene
         self.catalogue = catalogue
         self.success_radius = success_radius
         self.vfov = math.radians(vfov_deg)

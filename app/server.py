@@ -1,5 +1,8 @@
 """`gsmn serve`: one process with the runner, the viser page and the FastAPI API (uvicorn on a thread).
 
+Every browser tab that connects gets its own page (`Tab`: a viewer, its jobs, presenter and episodes views, built
+on viser's client-level handles) and loses it when it goes; the runner, the jobs and the record are shared.
+
 Both servers bind to loopback by default, and both check every request's Host, Origin and (when there is one)
 token (`app.access`): bound beyond loopback they need a token, printed at start-up in the page's URL. viser moves
 to the next free port silently when its port is taken, so the URLs are read back from the bound sockets; the API
@@ -10,8 +13,11 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import socket
 import threading
+import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,9 +43,10 @@ from app.jobs_view import JobsView
 from app.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
 from app.presenter import Presenter
 from app.runner import Runner
-from app.viewer import Viewer
+from app.viewer import Viewer, configure_server
 from gsmn.config import RunConfig
 
+log = logging.getLogger("gsmn.dashboard")
 DEFAULT_CHECKPOINT = "gsmn"  # checkpoints/gsmn
 DEFAULT_DATA_DIR = "data/dashboard"
 CHECKPOINTS_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
@@ -150,10 +157,13 @@ class Dashboard:
             self.viser = viser.ViserServer(host=host, port=port, verbose=False, label="GSMN dashboard")
         self.access = Access.for_bind(host, (self.viser.get_port(), api_socket[0].getsockname()[1]), token)
         guard_viser(self.viser.get_port(), self.access)
-        self.viewer = Viewer(self.viser, self.runner, env_id)
-        self.jobs_view = JobsView(self.viewer, self.jobs)
-        self.presenter = Presenter(self.viewer)
-        self.episodes_view = EpisodesView(self.viewer, self.keeper, self.presenter)
+        configure_server(self.viser)
+        self.env_id = env_id
+        self.tabs: dict[int, Tab] = {}  # by viser client id, in the order they connected
+        self._tabs_lock = threading.Lock()
+        self._gone: set[int] = set()  # clients that left before their tab was built
+        self.viser.on_client_connect(self._connect)
+        self.viser.on_client_disconnect(self._disconnect)
         page_url = _url(host, self.viser.get_port())
         app = make_api(self.runner, page_url, self.jobs, self.keeper)
         app.add_middleware(AccessMiddleware, access=self.access)
@@ -162,6 +172,56 @@ class Dashboard:
         self.urls = Urls(page_url + (f"/?token={token}" if token else ""), self.api.url, self.api.moved, token,
                          _notes(host, self.viser.get_port(), self.api.port, token))
         self.runner.call(ShowEnv(env_id))
+
+    # -- tabs -------------------------------------------------------------------------------------------------
+    def _connect(self, client: viser.ClientHandle) -> None:
+        """A tab opened (viser's thread pool): build its page."""
+        try:
+            tab = Tab(client, self)
+        except Exception:  # noqa: BLE001 - a tab that cannot be built must not take the server down
+            log.error("building the page of client %d failed:\n%s", client.client_id, traceback.format_exc())
+            return
+        with self._tabs_lock:
+            gone = client.client_id in self._gone
+            if not gone:
+                self.tabs[client.client_id] = tab
+        if gone:
+            tab.close()
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        with self._tabs_lock:
+            tab = self.tabs.pop(client.client_id, None)
+            if tab is None:
+                self._gone.add(client.client_id)
+        if tab is not None:
+            tab.close()
+
+    def tab(self, wait: float = 30.0) -> Tab:
+        """The newest open tab's page (for tests and scripts), waiting up to `wait` s for one to connect."""
+        deadline = time.monotonic() + wait
+        while True:
+            with self._tabs_lock:
+                if self.tabs:
+                    return next(reversed(self.tabs.values()))
+            if time.monotonic() >= deadline:
+                raise LookupError("no browser tab is open on the dashboard")
+            time.sleep(0.05)
+
+    @property
+    def viewer(self) -> Viewer:
+        return self.tab().viewer
+
+    @property
+    def presenter(self) -> Presenter:
+        return self.tab().presenter
+
+    @property
+    def episodes_view(self) -> EpisodesView:
+        return self.tab().episodes_view
+
+    @property
+    def jobs_view(self) -> JobsView:
+        return self.tab().jobs_view
 
     def resolve_checkpoint(self, ref: str | None) -> Path:
         """A checkpoint name (under checkpoints/, or run-N) or folder; None: the default one."""
@@ -181,15 +241,37 @@ class Dashboard:
         """Stop serving. Running evaluations and runs go on; the next `gsmn serve` re-attaches to them."""
         self.api.close()
         unguard_viser(self.viser.get_port())
-        self.episodes_view.close()
-        self.presenter.close()
-        self.jobs_view.close()
-        self.viewer.close()
+        with self._tabs_lock:
+            tabs, self.tabs = list(self.tabs.values()), {}
+        for tab in tabs:
+            tab.close()
         self.runner.close()
         self.keeper.close()
         self.jobs.close()
         with contextlib.redirect_stdout(io.StringIO()):
             self.viser.stop()
+
+
+class Tab:
+    """One browser tab's page: its viewer (controls, scene, timeline), its Failures and Fine-tune tabs, presenter
+    mode and Episodes tab, all on the client's own viser handles."""
+
+    def __init__(self, client: viser.ClientHandle, dashboard: Dashboard):
+        self.client = client
+        self.viewer = Viewer(client, dashboard.runner, dashboard.env_id)
+        try:
+            self.jobs_view = JobsView(self.viewer, dashboard.jobs)
+            self.presenter = Presenter(self.viewer)
+            self.episodes_view = EpisodesView(self.viewer, dashboard.keeper, self.presenter)
+        except BaseException:
+            self.viewer.close()
+            raise
+
+    def close(self) -> None:
+        for part in (getattr(self, "episodes_view", None), getattr(self, "presenter", None),
+                     getattr(self, "jobs_view", None), self.viewer):
+            if part is not None:
+                part.close()
 
 
 def _notes(host: str, page_port: int, api_port: int, token: str | None) -> tuple[str, ...]:

@@ -7,11 +7,18 @@ updates, drawing only the newest step when the simulator is ahead of the page, s
 simulator. The timeline shows any recorded
 step of the displayed episode, live or finished, with every view (scene, camera, maps, readouts) in sync.
 
-The scene and the controls are shared by every open tab (viser's server-level API).
+**A view per tab.** Every browser tab (viser client) has its own Viewer: its own controls, scene, timeline, episode
+shown, counterfactual and layers (viser's client-level GUI and scene handles), so one tab scrubbing, replaying or
+showing another world never moves another's. Shared on purpose, and said so on the page: the simulator (one episode
+flies at a time; Run, Pause, Step, Stop and Speed act on it for every tab) and the jobs. Commands carry the tab's
+`origin`, and so do the episodes and worlds they make: a tab shows its own, and those started elsewhere (other
+tabs, the API) only while its "Show episodes started elsewhere" box is ticked (the default; opening a kept episode
+or a link unticks it, and so does presenter mode).
 """
 
 from __future__ import annotations
 
+import contextlib
 import html
 import logging
 import queue
@@ -88,6 +95,7 @@ from app.viewer_events import (
     StateChanged,
     StepRecorded,
     TaskVisibility,
+    WatchSet,
     WhatIf,
     WorldChanged,
 )
@@ -105,6 +113,10 @@ REPLAY_STEPS_PER_SECOND = 10.0
 # redraw, and a browser on the same cores would take that time from the simulator (docs/dashboard.md).
 LIVE_FRAMES_PER_SECOND = 10.0
 FOLLOW_LABEL = "Follow the live step"
+WATCH_LABEL = "Show episodes started elsewhere"
+SHARED_NOTE = ("<small>This tab has its own timeline, episode, counterfactual and layers. **Shared by every tab:** "
+               "the one simulator (one episode flies at a time: Run, Pause, Step, Stop and Speed act on it for "
+               "everyone) and the jobs.</small>")
 GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before drawing without it
 
 
@@ -121,15 +133,28 @@ class _View:
     plot_steps: tuple[int, int] = (-1, -1)  # (steps, cursor) in the plot, to redraw it only when either moves
 
 
+def configure_server(server: viser.ViserServer) -> None:
+    """What every tab shares from the start: +z up, and the first camera over the field from beyond its
+    south-west corner (viser applies the initial camera when a client connects, before its Viewer exists)."""
+    server.scene.set_up_direction("+z")
+    camera = server.initial_camera
+    camera.position, camera.look_at, camera.up, camera.fov = (DEFAULT_CAMERA[k] for k in (
+        "position", "look_at", "up", "fov"))
+    camera.near, camera.far = CAMERA_NEAR, CAMERA_FAR
+
+
 class Viewer(RunnerListener):
-    def __init__(self, server: viser.ViserServer, runner: Runner, env_id: int = 70):
-        self.server = server
+    """One browser tab's page. `client`: its viser ClientHandle (its own `gui`, `scene` and `atomic()`)."""
+
+    def __init__(self, client: viser.ClientHandle, runner: Runner, env_id: int = 70):
+        self.client = client
+        self.origin = f"tab-{client.client_id}"  # on the commands this tab posts (app.commands.Command.origin)
         self.runner = runner
         self._checkpoint_of_choice: dict[str, str] = {}  # a policy menu entry ("Model: <label>") -> checkpoint name
         cam = runner.config.camera
         from gsmn.world.assets import load_catalogue
 
-        self.scene = SceneView(server, load_catalogue(), runner.config.task.success_radius, cam.vfov_deg,
+        self.scene = SceneView(client, load_catalogue(), runner.config.task.success_radius, cam.vfov_deg,
                                cam.width / cam.height)
         self.view = _View()
         self.world_shown: WorldShown | None = None
@@ -148,21 +173,32 @@ class Viewer(RunnerListener):
         self.render_seconds = 0.0
         field, cells = runner.config.world.field_size, runner.config.model.map_size
         self._cell_of = lambda x, y: world_cell(x, y, field, cells)
-        server.scene.set_up_direction("+z")
-        camera = server.initial_camera  # over the field from beyond its south-west corner
-        camera.position, camera.look_at, camera.up, camera.fov = (DEFAULT_CAMERA[k] for k in (
-            "position", "look_at", "up", "fov"))
-        camera.near, camera.far = CAMERA_NEAR, CAMERA_FAR
+        self._elsewhere_id: int | None = None  # the episode flying elsewhere that this tab does not show
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)
-        self.thread = threading.Thread(target=self._loop, name="gsmn-viewer", daemon=True)
+        self.thread = threading.Thread(target=self._loop, name=f"gsmn-viewer-{client.client_id}", daemon=True)
         self.thread.start()
+        # what a new tab shows first: the episode flying now, else the world shown last, else its own
+        live, shown = runner.live, runner.shown
+        if live is not None:
+            self._events.put(EpisodeStarted(live, opened=True))
+        elif shown is not None:
+            self._events.put(WorldChanged(shown, forced=True))
+        else:
+            self._post(ShowEnv(env_id), ShowAnswered)
 
     def close(self) -> None:
+        """The tab went: stop listening to the runner and end the UI thread."""
         self._closing = True
+        with contextlib.suppress(ValueError):
+            self.runner.listeners.remove(self)
         self._events.put(Close())
         self.thread.join(timeout=5)
+
+    def watching(self) -> bool:
+        """Whether this tab shows the episodes and worlds started elsewhere (other tabs, the API)."""
+        return bool(self.watch_others.value)
 
     # -- runner events (runner thread: only enqueue) ------------------------------------------------------------
     def on_world(self, shown: WorldShown) -> None:
@@ -182,7 +218,7 @@ class Viewer(RunnerListener):
 
     # -- the GUI ----------------------------------------------------------------------------------------------
     def _build_controls(self, env_id: int) -> None:
-        gui = self.server.gui
+        gui = self.client.gui
         gui.configure_theme(dark_mode=False, show_logo=False, brand_color=(40, 110, 245))
         gui.main_panel.dock_left()
         gui.main_panel.set_width(330)
@@ -213,13 +249,18 @@ class Viewer(RunnerListener):
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
+            self.elsewhere = gui.add_markdown("", visible=False)  # an episode flying for another tab, not shown here
             # the result right under the status: on a 1280 x 800 screen it shows without scrolling
             self.result = gui.add_markdown("")
         with gui.add_folder("Playback"):
             self.playback = gui.add_button_group("Control", ("Play", "Pause", "Step", "Stop"))
             self.timeline = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0)
             self.follow = gui.add_checkbox(FOLLOW_LABEL, True)
+            self.watch_others = gui.add_checkbox(WATCH_LABEL, True,
+                                                 hint="episodes flown from other tabs or the API appear here as "
+                                                      "they start; untick to keep this tab on its own")
             self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0])
+            self.shared_note = gui.add_markdown(SHARED_NOTE)
         with gui.add_folder("Counterfactual: another instruction, same map"):
             self.whatif = gui.add_text("What if", "", hint="grounded on the semantic map at the shown step")
             self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
@@ -251,6 +292,7 @@ class Viewer(RunnerListener):
         self.playback.on_click(self._on_playback)
         self.timeline.on_update(self._on_timeline)
         self.follow.on_update(self._on_follow)
+        self.watch_others.on_update(lambda e: self._events.put(WatchSet()) if e.client is not None else None)
         self.speed.on_update(self._on_speed)
         self.whatif_buttons.on_click(self._on_whatif)
         for box in self.layer_boxes.values():
@@ -260,7 +302,7 @@ class Viewer(RunnerListener):
         self.show_task.on_update(lambda _: self._events.put(TaskVisibility()))
 
     def _build_views(self) -> None:
-        gui = self.server.gui
+        gui = self.client.gui
         panel = gui.add_panel()
         with panel.add_tab("Camera and maps", viser.Icon.MAP):
             gui.add_markdown("Camera")
@@ -380,6 +422,7 @@ class Viewer(RunnerListener):
         self._post(StartEpisode(env_id, text, policy, checkpoint, preempt=True, paused=paused), StartAnswered)
 
     def _post(self, command, answered: type[ShowAnswered | StartAnswered]) -> Future:
+        command.origin = self.origin  # what it starts is this tab's
         future = self.runner.post(command)
         future.add_done_callback(lambda f: self._events.put(answered(f)))
         return future
@@ -510,13 +553,24 @@ class Viewer(RunnerListener):
         """Apply one event to the view; True when the shown step must be redrawn."""
         v = self.view
         match event:
-            case WorldChanged(shown):
-                self._show_world(shown)
+            case WorldChanged(shown, forced):
+                if forced or shown.origin == self.origin or self.watching():
+                    self._show_world(shown)
                 return False
-            case EpisodeStarted(episode):
+            case EpisodeStarted(episode, opened):
+                if not (opened or episode.origin == self.origin or self.watching()):
+                    self._started_elsewhere(episode)
+                    return False
                 if self.compare.keeps_shown(episode):
                     return False
                 self._start(episode)
+                return False
+            case WatchSet():
+                live = self.runner.live
+                if self.watching() and live is not None and live is not v.episode:
+                    self._start(live)
+                    v.cursor = max(0, len(live.steps) - 1)
+                    return True
                 return False
             case StepRecorded(episode):
                 if episode is v.episode:
@@ -525,6 +579,8 @@ class Viewer(RunnerListener):
                     return v.follow or len(episode.steps) <= 2  # the timeline grows either way
                 return v.follow and self.compare.is_partner(episode)
             case EpisodeEnded(episode):
+                if episode.id == self._elsewhere_id:
+                    self._started_elsewhere(None)
                 if episode is v.episode:
                     v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
                     model = self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
@@ -567,14 +623,14 @@ class Viewer(RunnerListener):
                 v.inspected = (x, y)
                 return True
             case SidesTyped(sides):
-                with self.server.atomic():
+                with self.client.atomic():
                     if sides:
                         self.scene.draw_sides(*sides)
                     else:
                         self.scene.draw_sides(None)
                 return False
             case TaskVisibility():
-                with self.server.atomic():
+                with self.client.atomic():
                     self.scene.set_task_visible(bool(self.show_task.value))
                 return False
         return False
@@ -599,7 +655,7 @@ class Viewer(RunnerListener):
         self.world_shown = shown
         v = self.view
         v.episode, v.cursor, v.follow, v.replaying = None, 0, True, False
-        with self.server.atomic():
+        with self.client.atomic():
             if self.scene.world != shown.world:
                 self.scene.draw_world(shown.world, self._on_ground_click, self._on_landmark_click)
                 self.scene.mark_cell(None, 1.0)
@@ -613,7 +669,7 @@ class Viewer(RunnerListener):
             self.scene.set_drone(shown.position, shown.yaw, shown.T_world_camera, shown.image)
         self.camera.content = camera_html(jpeg_bytes(shown.image))
         world = shown.world
-        with self.server.atomic():
+        with self.client.atomic():
             self.scene.draw_sides(None)
         self.env_number.value = str(world.env_id)
         self.split.value = world.split
@@ -629,14 +685,27 @@ class Viewer(RunnerListener):
         self.maps.content = placeholder_html("Run an episode to see the model's maps, live at every step.")
         self._set_timeline(0, 0)
 
+    def _started_elsewhere(self, episode: Episode | None) -> None:
+        """Say (or stop saying) that an episode flies for another tab or the API while this tab shows its own."""
+        self._elsewhere_id = episode.id if episode is not None else None
+        if episode is None:
+            self.elsewhere.visible = False
+            return
+        where = "over the API" if episode.origin is None else "in another tab"
+        self.elsewhere.content = (f"<small>Episode {episode.id} is flying, started {where}: the simulator is shared. "
+                                  f"Tick **{WATCH_LABEL}** (Playback) to watch it here.</small>")
+        self.elsewhere.visible = True
+
     def _start(self, episode: Episode) -> None:
+        if episode.id == self._elsewhere_id:
+            self._started_elsewhere(None)
         v = self.view
         v.episode, v.cursor, v.follow, v.replaying, v.plot_steps = episode, 0, True, False, (-1, -1)
         self.compare.reset_plot()
         self.follow.value = True
         world = episode.task.world
         self.world_shown = None
-        with self.server.atomic():
+        with self.client.atomic():
             if self.scene.world != world:
                 self.scene.draw_world(world, self._on_ground_click, self._on_landmark_click)
                 self.scene.mark_cell(None, 1.0)
@@ -652,7 +721,7 @@ class Viewer(RunnerListener):
         self.instruction_note.content = ""
         self._set_chips(episode.instruction, world)
         self.run_button.color = "green"
-        with self.server.atomic():
+        with self.client.atomic():
             self.scene.draw_sides(None)
         if v.counterfactual is None:
             self.whatif.value = other_side(episode.instruction, episode.task.instruction.side)
@@ -715,7 +784,7 @@ class Viewer(RunnerListener):
         v = self.view
         if not text:
             v.counterfactual = None
-            with self.server.atomic():
+            with self.client.atomic():
                 self.scene.draw_counterfactual(None)
             self.whatif_note.content = "Counterfactual cleared: the maps are the episode's own again."
             return True
@@ -734,7 +803,7 @@ class Viewer(RunnerListener):
             if v.counterfactual is None:
                 return False
             v.counterfactual = None
-            with self.server.atomic():
+            with self.client.atomic():
                 self.scene.draw_counterfactual(None)
             return True
         v.counterfactual = instruction.text
@@ -746,7 +815,7 @@ class Viewer(RunnerListener):
             instruction = parse_instruction(text, episode.task.world)
         except InstructionError:
             return
-        with self.server.atomic():
+        with self.client.atomic():
             self.scene.draw_counterfactual(instruction)
 
     def _counterfactual_at(self, episode: Episode, step: int) -> Grounding | str | None:
@@ -803,7 +872,7 @@ class Viewer(RunnerListener):
                                 tuple(lm.noun_phrase for lm in episode.task.world.landmarks))
         positions = self.compare.own_path(episode, np.array([s.position for s in episode.steps[: t + 1]]))
         opacity = float(self.opacity.value)
-        with self.server.atomic():
+        with self.client.atomic():
             self.scene.set_drone(record.position, record.yaw, record.T_world_camera, None, record.camera_jpeg)
             self.scene.set_path(positions)
             for name, box in self.layer_boxes.items():
@@ -839,7 +908,7 @@ class Viewer(RunnerListener):
         if xy is None:
             return
         world = episode.task.world
-        with self.server.atomic():
+        with self.client.atomic():
             self.scene.mark_cell(xy, world.field_size / self.runner.config.model.map_size)
         if record.maps is None or model is None:
             self.inspector.content = "No model maps to inspect in this episode."

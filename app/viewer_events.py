@@ -19,11 +19,13 @@ class Event:
 @dataclass(frozen=True, eq=False)
 class WorldChanged(Event):
     shown: WorldShown
+    forced: bool = False  # shown whatever its origin (a new tab's first world)
 
 
 @dataclass(frozen=True, eq=False)
 class EpisodeStarted(Event):
     episode: Episode
+    opened: bool = False  # this tab opened it (a kept episode, a link, a new tab's live one): shown whatever its origin
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,6 +79,11 @@ class CursorMoved(Event):
 @dataclass(frozen=True)
 class FollowSet(Event):
     follow: bool
+
+
+@dataclass(frozen=True)
+class WatchSet(Event):
+    """The "Show episodes started elsewhere" box was toggled."""
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ def reset_camera(dashboard, look_at: tuple[float, float] | None = None) -> None:
 
     target = DEFAULT_CAMERA["look_at"] if look_at is None else (look_at[0], look_at[1], 0.0)
     position = DEFAULT_CAMERA["position"] if look_at is None else (look_at[0] + 12.0, look_at[1] - 22.0, 22.0)
-    for client in dashboard.viewer.server.get_clients().values():
+    for client in dashboard.viser.get_clients().values():
         client.camera.position = position
         client.camera.look_at = target
         client.camera.up_direction = DEFAULT_CAMERA["up"]

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from dataclasses import replace
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest

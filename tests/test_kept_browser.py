@@ -162,6 +162,9 @@ def test_presenter_mode_by_link_at_1280x800(dashboard, browser):
     assert not page.get_by_text("Environment id").first.is_visible()  # developer controls hidden
     assert not page.get_by_text("follow an instruction with the Grounded").first.is_visible()  # and the introduction
     assert not page.get_by_role("tab", name="Failures").is_visible()
+    for control in (page.get_by_role("button", name="Run", exact=True), page.get_by_role("slider").first):
+        where = control.bounding_box()  # Run and the timeline on the screen, with no scrolling
+        assert where is not None and where["y"] + where["height"] <= 800, where
     # off again: everything back
     dashboard.presenter.set(False)
     page.get_by_text("Environment id").first.wait_for()

@@ -136,7 +136,7 @@ def test_a_newcomer_walks_the_page(dashboard, page):
     # an ambiguous name says which landmark it means, and the four sides are drawn around it (items 7, 8)
     type_instruction(page, "go to the right side of the palm tree")
     page.get_by_text("it means the one at").first.wait_for()
-    until(lambda: all(_has(viewer.server.scene, f"/sides/{side}") for side in SIDE_TURN), what="the four sides")
+    until(lambda: all(_has(viewer.client.scene, f"/sides/{side}") for side in SIDE_TURN), what="the four sides")
     assert "Sides are seen from the start" in body(page)
 
     # the chips fill the template in: a landmark name, then a side (instruction help)

@@ -1,0 +1,139 @@
+"""In headless Chromium, with three tabs on one dashboard: every tab has its own view.
+
+Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
+neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (which
+shows episodes started elsewhere, the default) watches A's. A tab that closes leaves the runner's listeners."""
+
+from __future__ import annotations
+
+import time
+
+import playwright.sync_api as playwright_api
+import pytest
+
+from app.browser import CHROMIUM, CHROMIUM_ARGS, field
+from app.commands import SetSpeed, StartEpisode
+from app.fixtures import make_untrained_checkpoint
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory):
+    from app.server import Dashboard
+    from gsmn.config import preset, with_overrides
+
+    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "40"}), checkpoint=folder, port=0, api_port=0,
+                  checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=tmp_path_factory.mktemp("data"))
+    try:
+        old = d.runner.call(StartEpisode(71, None, "model", None))  # over the API: an episode to replay
+        until(lambda: not old.live, "the old episode to end", 120)
+        d.keeper.flush()
+        d.old = old
+        yield d
+    finally:
+        d.close()
+
+
+@pytest.fixture(scope="module")
+def browser(dashboard):
+    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium"
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()
+
+
+def until(predicate, what: str, timeout: float = 60.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def shown(page) -> dict:
+    """The episode and step a tab's map panel shows, and its environment box."""
+    return page.evaluate("""() => {
+        const m = document.querySelector('.gsmn-maps');
+        return {episode: m && m.dataset.episode ? +m.dataset.episode : null,
+                step: m && m.dataset.step ? +m.dataset.step : null};
+    }""")
+
+
+def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
+    old = dashboard.old
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    base = dashboard.urls.page
+    pages = {}
+    for count, (name, query) in enumerate((("a", ""), ("b", f"/?episode={old.id}&step=3"), ("c", "")), start=1):
+        page = context.new_page()
+        page.set_default_timeout(60_000)
+        page.goto(base + query)
+        until(lambda count=count: len(dashboard.tabs) == count, f"tab {name} to connect")
+        pages[name] = page
+    a, b, c = pages["a"], pages["b"], pages["c"]
+    tab_a, tab_b, tab_c = list(dashboard.tabs.values())  # in the order they connected
+    until(lambda: shown(b) == {"episode": old.id, "step": 3}, "tab B on the old episode at step 3")
+    assert not tab_b.viewer.watch_others.value  # opening a kept episode keeps the tab on it
+    assert tab_a.viewer.watch_others.value and tab_c.viewer.watch_others.value
+
+    # A shows another world: B's world and episode stay
+    box = field(a, "Environment id")
+    box.fill("75")
+    box.press("Enter")
+    a.get_by_role("button", name="Show", exact=True).click()
+    a.get_by_text("Environment 75").first.wait_for()
+    assert tab_a.viewer.scene.world.env_id == 75
+    assert tab_b.viewer.scene.world.env_id == 71 and shown(b) == {"episode": old.id, "step": 3}
+    assert field(b, "Environment id").input_value() == "71"
+
+    # A flies a new episode with the expert (an untrained model may stop at once), slowly (the simulator's speed
+    # is shared: set here for the test's timing)
+    field(a, "Policy").click()
+    a.get_by_role("option", name="Expert (oracle)", exact=True).click()
+    dashboard.runner.call(SetSpeed(3.0))
+    try:
+        a.get_by_role("button", name="Run", exact=True).click()
+        new = until(lambda: shown(a)["episode"] not in (None, old.id) and shown(a), "A's new episode")["episode"]
+        episode = dashboard.runner.episodes.get(new)
+        assert episode.origin == tab_a.viewer.origin and episode.env_id == 75
+        until(lambda: shown(c)["episode"] == new, "tab C watching A's episode")
+        b.get_by_text("is flying, started in another tab").first.wait_for()
+
+        # B scrubs its old episode while A's flies: B moves, A follows its live step
+        b.get_by_role("slider").first.focus()
+        for _ in range(4):
+            b.keyboard.press("ArrowRight")
+        until(lambda: shown(b) == {"episode": old.id, "step": 7}, "B scrubbed to step 7")
+        assert episode.live, "the new episode ended before B scrubbed: the test's timing is off"
+        before = shown(a)["step"]
+        until(lambda: shown(a)["episode"] == new and shown(a)["step"] > before, "A's live steps going on")
+        assert tab_a.viewer.view.follow and tab_a.viewer.view.episode is episode
+        until(lambda: not episode.live, "the new episode to end", 120)
+    finally:
+        dashboard.runner.call(SetSpeed(None))
+    last = len(episode.steps) - 1
+    until(lambda: shown(a) == {"episode": new, "step": last}, "A at its episode's last step")
+    assert shown(b) == {"episode": old.id, "step": 7}  # B never moved
+    assert tab_b.viewer.scene.world.env_id == 71 and tab_a.viewer.scene.world.env_id == 75
+    until(lambda: b.get_by_text("is flying, started in another tab").count() == 0
+          or not b.get_by_text("is flying, started in another tab").first.is_visible(), "B's note to go")
+
+    # and A scrubbing back leaves B where it is
+    a.get_by_role("slider").first.focus()
+    a.keyboard.press("Home")
+    until(lambda: shown(a) == {"episode": new, "step": 0}, "A back at step 0")
+    time.sleep(0.5)
+    assert shown(b) == {"episode": old.id, "step": 7}
+
+    # a tab that goes leaves nothing behind
+    viewer_c = tab_c.viewer
+    c.close()
+    until(lambda: len(dashboard.tabs) == 2, "tab C to be dropped")
+    parts = (viewer_c, tab_c.episodes_view, tab_c.jobs_view)
+    until(lambda: not any(part in dashboard.runner.listeners for part in parts), "tab C's listeners to go", 15)
+    until(lambda: not viewer_c.thread.is_alive(), "tab C's UI thread to end", 15)
+    assert len([x for x in dashboard.runner.listeners if x in (tab_a.viewer, tab_b.viewer)]) == 2
+    context.close()
