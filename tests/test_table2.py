@@ -128,3 +128,33 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert "| GSMN | " in table and "| GSMN without J_ground | not yet |" in table
     # a start after the end does nothing more
     assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
+
+
+def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    control = SYSTEMS[0]
+
+    def stage_folder(folder: Path, stage: str, epoch: int, weights: bytes) -> None:
+        folder.mkdir(parents=True)
+        (folder / "weights.safetensors").write_bytes(weights)
+        (folder / "stage.json").write_text(json.dumps({"system": control.name, "stage": stage, "epoch": epoch,
+                                                       "epochs": 16, "evaluated": False}))
+
+    assert table2.keep_latest(layout, [control]) == []  # nothing finished yet
+    stage_folder(layout.shipped(control), "supervised", 4, b"epoch 4")
+    (layout.shipped(control) / "evaluation.json").write_text("{}")  # kept across the swap
+    stage_folder(layout.latest(control), "supervised", 6, b"epoch 6")
+    assert table2.keep_latest(layout, [control]) == [control.name]
+    ship = layout.shipped(control)
+    assert (ship / "weights.safetensors").read_bytes() == b"epoch 6"
+    assert table2.read_stage(ship)["epoch"] == 6 and (ship / "evaluation.json").is_file()
+    assert not list(ship.parent.glob(".*"))  # no temporary folder left
+
+    shutil.rmtree(layout.latest(control))
+    stage_folder(layout.latest(control), "supervised", 5, b"epoch 5")  # behind the stage copy: left alone
+    assert table2.keep_latest(layout, [control]) == []
+    assert (ship / "weights.safetensors").read_bytes() == b"epoch 6"
+    shutil.rmtree(layout.latest(control))
+    stage_folder(layout.latest(control), "dagger", 1, b"iteration 1")  # DAggerFM is further than any epoch
+    assert table2.keep_latest(layout, [control]) == [control.name]
+    assert table2.read_stage(ship)["stage"] == "dagger"

@@ -17,6 +17,8 @@ collection (deterministic by environment id). Each system's latest finished stag
 supervised epochs, the end of supervised learning, every `publish_every_iterations` DAggerFM iterations, the end)
 is copied to `SHIP/<name>/` (a checkpoint folder: weights, config, vocabulary, meta and Adam state, plus the run's
 small JSON files in `run/`; never images), replacing the previous copy; with `git_commit` it is committed at once.
+Every finished epoch and iteration is also copied to `OUT/<name>/latest` (not committed):
+`--keep-latest` ships those over the stage copies on demand, before a machine is given up between two of them.
 A start whose run folder is behind that copy restores the run from it and goes on; a DAggerFM run restored this
 way has no dataset and refills it from the current mixture policy (gsmn.training.dagger). The finished evaluation
 is kept there too, compactly (`evaluation.json`, `table1.json`: one line of figures per episode, no trajectories),
@@ -165,7 +167,8 @@ def _state_epoch(run_root: Path) -> int:
 def publish(run_root: Path, ship: Path, stage: dict) -> None:
     """Replace the copy at `ship` with the run's checkpoint and its small state files (atomically: a kill leaves
     the old copy or the new one)."""
-    tmp = ship.parent / f".{ship.name}.tmp"
+    ship.parent.mkdir(parents=True, exist_ok=True)
+    tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(run_root / "checkpoint", tmp)
     (tmp / "run").mkdir()
@@ -175,12 +178,54 @@ def publish(run_root: Path, ship: Path, stage: dict) -> None:
     if (ship / "evaluation.json").is_file():
         shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
     (tmp / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
-    old = ship.parent / f".{ship.name}.old"
+    _swap(tmp, ship)
+
+
+def _swap(tmp: Path, ship: Path) -> None:
+    """Put the folder `tmp` at `ship` in place of what is there."""
+    old = ship.parent / f".{ship.name}.old{os.getpid()}"
     shutil.rmtree(old, ignore_errors=True)
     if ship.exists():
         ship.rename(old)
     tmp.rename(ship)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _stage_order(stage: dict | None) -> tuple[int, int]:
+    """How far a stage copy is: supervised before DAggerFM, then by epoch (iteration); evaluated is furthest."""
+    if not stage:
+        return (-1, -1)
+    if stage.get("evaluated"):
+        return (2, 0)
+    return (0 if stage.get("stage") == "supervised" else 1, int(stage.get("epoch", 0)))
+
+
+def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log=print) -> list[str]:
+    """Copy each system's last finished epoch or iteration (OUT/<name>/latest, written at every one) over its stage
+    copy where it is further on, and commit it: for a machine about to be lost between two stage copies. Safe
+    while the programme runs (both swap whole folders). Returns the names of the systems copied."""
+    kept = []
+    for system in systems:
+        latest, ship = layout.latest(system), layout.shipped(system)
+        new, old = read_stage(latest), read_stage(ship)
+        if new is None or _stage_order(new) <= _stage_order(old):
+            log(f"{system.name}: its stage copy is up to date" if new is not None else
+                f"{system.name}: no finished epoch in {latest}")
+            continue
+        tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(latest, tmp)
+        if (ship / "evaluation.json").is_file():
+            shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
+        _swap(tmp, ship)
+        what = "epoch" if new.get("stage") == "supervised" else "iteration"
+        where = f"{'supervised' if new.get('stage') == 'supervised' else 'dagger'} {what} {new['epoch']} of " \
+                f"{new['epochs']}"
+        log(f"{system.name}: kept {where} in {ship}")
+        if commit:
+            git_commit([ship], f"table2: {system.label}, {where} (stage copy for resuming)", log)
+        kept.append(system.name)
+    return kept
 
 
 def restore(ship: Path, run_root: Path) -> None:
@@ -240,6 +285,10 @@ class Layout:
     def shipped(self, system: System) -> Path:
         return self.ship / system.name
 
+    def latest(self, system: System) -> Path:
+        """The last finished epoch's copy, in the layout of a stage copy (written every epoch, never committed)."""
+        return self.out / system.name / "latest"
+
 
 def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers: int = 2, log=print) -> None:
     """Expert episodes for the stores named in `which` ("train", "dev", "seed"); existing episodes are kept."""
@@ -290,10 +339,15 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     sup_run, dagger_run = layout.run(system, "supervised"), layout.run(system, "dagger")
     stage = read_stage(ship) or {}
 
-    def keep(run_root: Path, name: str, epoch: int, total: int) -> None:
-        publish(run_root, ship, {"system": system.name, "label": system.label, "stage": name, "epoch": epoch,
-                                 "epochs": total, "recipe": recipe.to_dict(),
-                                 "evaluated": (ship / "evaluation.json").is_file()})
+    def keep(run_root: Path, name: str, epoch: int, total: int, to_ship: bool) -> None:
+        """Every finished epoch goes to OUT/<name>/latest (`keep_latest` ships it on demand); every few, and the
+        last, to the stage copy."""
+        stage = {"system": system.name, "label": system.label, "stage": name, "epoch": epoch, "epochs": total,
+                 "recipe": recipe.to_dict()}
+        publish(run_root, layout.latest(system), {**stage, "evaluated": False})
+        if not to_ship:
+            return
+        publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()})
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
         log(f"{system.name}: kept {where} in {ship}")
         if commit:
@@ -306,8 +360,8 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     in_dagger = stage.get("stage") == "dagger" or _state_epoch(dagger_run) >= 0
     if not in_dagger:
         def on_epoch(state) -> None:
-            if state.epoch % recipe.publish_every_epochs == 0 or state.epoch == recipe.epochs:
-                keep(sup_run, "supervised", state.epoch, recipe.epochs)
+            keep(sup_run, "supervised", state.epoch, recipe.epochs,
+                 state.epoch % recipe.publish_every_epochs == 0 or state.epoch == recipe.epochs)
 
         train_supervised(sup_run, system.kind, sup_config, EpisodeStore(layout.data / "expert_train"),
                          EpisodeStore(layout.data / "expert_dev"), log=log, on_progress=on_progress,
@@ -324,8 +378,8 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     init = sup_run / "checkpoint" if (sup_run / "checkpoint" / "meta.json").is_file() else ship
 
     def on_iteration(state) -> None:
-        if state.epoch % recipe.publish_every_iterations == 0 or state.epoch == recipe.iterations:
-            keep(dagger_run, "dagger", state.epoch, recipe.iterations)
+        keep(dagger_run, "dagger", state.epoch, recipe.iterations,
+             state.epoch % recipe.publish_every_iterations == 0 or state.epoch == recipe.iterations)
 
     train_dagger(dagger_run, init, dagger_config, EpisodeStore(layout.data / "expert_seed"),
                  EpisodeStore(layout.data / "expert_dev"), env_ids=environments(recipe)["fresh"], log=log,
@@ -584,6 +638,9 @@ def add_parser(sub) -> None:
     t.add_argument("--recipe", choices=sorted(RECIPES), default="paper", help="the budget (tiny: seconds, for tests)")
     t.add_argument("--git-commit", action="store_true",
                    help="commit each system's stage copy as soon as it is written (so a new machine resumes it)")
+    t.add_argument("--keep-latest", action="store_true",
+                   help="copy each system's last finished epoch or iteration over its stage copy (with --git-commit, "
+                        "commit it) and exit; safe while the programme runs: before a machine is lost")
     t.add_argument("--table", action="store_true",
                    help="print Table 2 (dev) and the Table 1 rows (test) from the kept evaluations and exit")
     t.add_argument("--system", help=argparse.SUPPRESS)  # one system in this process: what the programme runs
@@ -610,6 +667,9 @@ def cmd_table2(args) -> int:
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise ValueError(f"unknown system(s) {unknown}; choose from {', '.join(BY_NAME)}")
+    if args.keep_latest:
+        keep_latest(layout, [BY_NAME[n] for n in names], args.git_commit)
+        return 0
     if args.parallel < 1:
         raise ValueError("--parallel must be at least 1")
     return run_programme(layout, recipe, args.recipe, [BY_NAME[n] for n in names], args.parallel, args.git_commit)
