@@ -73,7 +73,8 @@ RECIPES = {
     "paper": Recipe(),
     # seconds per stage: the tests run the whole programme with it
     "tiny": Recipe(train_envs=3, dev_envs=2, epochs=2, iterations=2, rollouts=2, dataset_size=2, fresh_envs=4,
-                   eval_envs=2, table1_envs=1, publish_every_epochs=1, publish_every_iterations=1, control_gate=0.0, preset="tiny"),
+                   eval_envs=2, table1_envs=1, publish_every_epochs=1, publish_every_iterations=1, control_gate=0.0,
+                   preset="tiny"),
 }
 
 
