@@ -210,6 +210,8 @@ class EpisodesView(RunnerListener):
             viewer._events.put(OptionsChanged())
         if viewer.watch_others.value:  # a replay of one's own: another tab's Run does not take it away
             viewer.watch_others.value = False
+        if self.presenter is not None and self.presenter.on:  # and leaving presenter mode does not tick it again
+            self.presenter.watched_before = False
         if episode is not viewer.view.episode:
             viewer._events.put(EpisodeStarted(episode, opened=True))
             if not episode.live:

@@ -47,7 +47,7 @@ class Presenter:
         self.viewer = viewer
         self.client: viser.ClientHandle = viewer.client
         self.on = False
-        self._watched: bool | None = None  # the "started elsewhere" box before presenter mode unticked it
+        self.watched_before: bool | None = None  # the "started elsewhere" box before presenter mode unticked it
         self._closing = False
         self._shown: tuple | None = None
         gui = self.client.gui
@@ -84,10 +84,10 @@ class Presenter:
         from app.viewer_events import WatchSet
 
         if on:
-            self._watched = bool(v.watch_others.value)
+            self.watched_before = bool(v.watch_others.value)
             v.watch_others.value = False
-        elif self._watched is not None:
-            v.watch_others.value, self._watched = self._watched, None
+        elif self.watched_before is not None:
+            v.watch_others.value, self.watched_before = self.watched_before, None
             v._events.put(WatchSet())
         with self.client.atomic():
             for name in HIDDEN:

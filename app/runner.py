@@ -146,7 +146,6 @@ class Runner(ComparingRunner):
         self.paused = False
         self._step_budget = 0
         self._pending: deque[Episode] = deque()
-        self._after: list[Command] = []  # commands that wait for the live episode to unwind
         self._commands: queue.Queue[Command | None] = queue.Queue()
         self._closing = False
         self._ready: Future = Future()
@@ -233,13 +232,11 @@ class Runner(ComparingRunner):
                 if self._pending:
                     item = self._pending.popleft()
                     self._fly_pair(item) if isinstance(item, Comparison) else self._fly(item)
-                    self._run_deferred()
                     continue
                 command = self._commands.get()
                 if command is None:
                     break
                 self._handle(command)
-                self._run_deferred()
         finally:
             for command in self._drain():
                 command.future.set_exception(Conflict("the dashboard is shutting down"))
@@ -248,8 +245,7 @@ class Runner(ComparingRunner):
                     env.close()
 
     def _drain(self) -> list[Command]:
-        out = list(self._after)
-        self._after.clear()
+        out = []
         while True:
             try:
                 command = self._commands.get_nowait()
@@ -257,10 +253,6 @@ class Runner(ComparingRunner):
                 return out
             if command is not None and not command.future.done():
                 out.append(command)
-
-    def _run_deferred(self) -> None:
-        while self._after and self.live is None:
-            self._handle(self._after.pop(0))
 
     def _notify(self, method: str, *args: Any) -> None:
         for listener in list(self.listeners):

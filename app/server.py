@@ -162,8 +162,9 @@ class Dashboard:
         self.tabs: dict[int, Tab] = {}  # by viser client id, in the order they connected
         self._tabs_lock = threading.Lock()
         self._gone: set[int] = set()  # clients that left before their tab was built
+        self._closed = False
+        self.viser.on_client_disconnect(self._disconnect)  # first: a client that comes and goes at once is seen go
         self.viser.on_client_connect(self._connect)
-        self.viser.on_client_disconnect(self._disconnect)
         page_url = _url(host, self.viser.get_port())
         app = make_api(self.runner, page_url, self.jobs, self.keeper)
         app.add_middleware(AccessMiddleware, access=self.access)
@@ -180,9 +181,12 @@ class Dashboard:
             tab = Tab(client, self)
         except Exception:  # noqa: BLE001 - a tab that cannot be built must not take the server down
             log.error("building the page of client %d failed:\n%s", client.client_id, traceback.format_exc())
+            with self._tabs_lock:
+                self._gone.discard(client.client_id)
             return
         with self._tabs_lock:
-            gone = client.client_id in self._gone
+            gone = client.client_id in self._gone or self._closed
+            self._gone.discard(client.client_id)
             if not gone:
                 self.tabs[client.client_id] = tab
         if gone:
@@ -242,6 +246,7 @@ class Dashboard:
         self.api.close()
         unguard_viser(self.viser.get_port())
         with self._tabs_lock:
+            self._closed = True  # a tab still being built closes itself when done
             tabs, self.tabs = list(self.tabs.values()), {}
         for tab in tabs:
             tab.close()
@@ -264,7 +269,7 @@ class Tab:
             self.presenter = Presenter(self.viewer)
             self.episodes_view = EpisodesView(self.viewer, dashboard.keeper, self.presenter)
         except BaseException:
-            self.viewer.close()
+            self.close()  # the parts built so far
             raise
 
     def close(self) -> None:

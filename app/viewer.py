@@ -11,9 +11,10 @@ step of the displayed episode, live or finished, with every view (scene, camera,
 shown, counterfactual and layers (viser's client-level GUI and scene handles), so one tab scrubbing, replaying or
 showing another world never moves another's. Shared on purpose, and said so on the page: the simulator (one episode
 flies at a time; Run, Pause, Step, Stop and Speed act on it for every tab) and the jobs. Commands carry the tab's
-`origin`, and so do the episodes and worlds they make: a tab shows its own, and those started elsewhere (other
-tabs, the API) only while its "Show episodes started elsewhere" box is ticked (the default; opening a kept episode
-or a link unticks it, and so does presenter mode).
+`origin`, and so do the episodes and worlds they make: a tab shows its own worlds only, its own episodes, and
+episodes started elsewhere (other tabs, the API) while its "Show episodes started elsewhere" box is ticked (the
+default; opening a kept episode or a link unticks it, and so does presenter mode). An episode flying that the tab
+does not show is said under the status line, with a "Watch episode N" button.
 """
 
 from __future__ import annotations
@@ -95,6 +96,7 @@ from app.viewer_events import (
     StateChanged,
     StepRecorded,
     TaskVisibility,
+    WatchLive,
     WatchSet,
     WhatIf,
     WorldChanged,
@@ -249,7 +251,9 @@ class Viewer(RunnerListener):
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
-            self.elsewhere = gui.add_markdown("", visible=False)  # an episode flying for another tab, not shown here
+            self.elsewhere = gui.add_markdown("", visible=False)  # an episode flying that this tab does not show
+            self.watch_live = gui.add_button("Watch it", icon=viser.Icon.EYE, visible=False,
+                                             hint="show the episode flying now in this tab")
             # the result right under the status: on a 1280 x 800 screen it shows without scrolling
             self.result = gui.add_markdown("")
         with gui.add_folder("Playback"):
@@ -259,7 +263,8 @@ class Viewer(RunnerListener):
             self.watch_others = gui.add_checkbox(WATCH_LABEL, True,
                                                  hint="episodes flown from other tabs or the API appear here as "
                                                       "they start; untick to keep this tab on its own")
-            self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0])
+            self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0],
+                                          hint="the simulator's pace, for every tab")
             self.shared_note = gui.add_markdown(SHARED_NOTE)
         with gui.add_folder("Counterfactual: another instruction, same map"):
             self.whatif = gui.add_text("What if", "", hint="grounded on the semantic map at the shown step")
@@ -293,6 +298,7 @@ class Viewer(RunnerListener):
         self.timeline.on_update(self._on_timeline)
         self.follow.on_update(self._on_follow)
         self.watch_others.on_update(lambda e: self._events.put(WatchSet()) if e.client is not None else None)
+        self.watch_live.on_click(lambda _: self._events.put(WatchLive()))
         self.speed.on_update(self._on_speed)
         self.whatif_buttons.on_click(self._on_whatif)
         for box in self.layer_boxes.values():
@@ -554,16 +560,23 @@ class Viewer(RunnerListener):
         v = self.view
         match event:
             case WorldChanged(shown, forced):
-                if forced or shown.origin == self.origin or self.watching():
+                if forced or shown.origin == self.origin:  # another tab's world is its own business
                     self._show_world(shown)
                 return False
             case EpisodeStarted(episode, opened):
                 if not (opened or episode.origin == self.origin or self.watching()):
                     self._started_elsewhere(episode)
                     return False
-                if self.compare.keeps_shown(episode):
+                if not opened and self.compare.keeps_shown(episode):
                     return False
                 self._start(episode)
+                return False
+            case WatchLive():
+                live = self.runner.live
+                if live is not None and live is not v.episode:
+                    self._start(live)
+                    v.cursor = max(0, len(live.steps) - 1)
+                    return True
                 return False
             case WatchSet():
                 live = self.runner.live
@@ -684,17 +697,26 @@ class Viewer(RunnerListener):
         self.readout.content = f"Step 0 of environment {world.env_id}, at the start corner."
         self.maps.content = placeholder_html("Run an episode to see the model's maps, live at every step.")
         self._set_timeline(0, 0)
+        live = self.runner.live
+        if live is not None:  # still flying, unseen here (this tab's own, or another's): say so, with a way back
+            self._started_elsewhere(live)
 
     def _started_elsewhere(self, episode: Episode | None) -> None:
-        """Say (or stop saying) that an episode flies for another tab or the API while this tab shows its own."""
+        """Say (or stop saying) that an episode flies that this tab does not show (another tab's, the API's, or its
+        own left for a world), with a button to watch it."""
         self._elsewhere_id = episode.id if episode is not None else None
         if episode is None:
-            self.elsewhere.visible = False
+            self.elsewhere.visible = self.watch_live.visible = False
             return
-        where = "over the API" if episode.origin is None else "in another tab"
-        self.elsewhere.content = (f"<small>Episode {episode.id} is flying, started {where}: the simulator is shared. "
-                                  f"Tick **{WATCH_LABEL}** (Playback) to watch it here.</small>")
-        self.elsewhere.visible = True
+        if episode.origin == self.origin:
+            where = "started here and still flying"
+        else:
+            where = "flying, started " + ("over the API" if episode.origin is None else "in another tab")
+        self.elsewhere.content = (f"<small>Episode {episode.id} is {where}: one simulator flies for every tab. "
+                                  f"*Watch it* shows it here; so does ticking **{WATCH_LABEL}** (Playback) for every "
+                                  "new one.</small>")
+        self.watch_live.label = f"Watch episode {episode.id}"
+        self.elsewhere.visible = self.watch_live.visible = True
 
     def _start(self, episode: Episode) -> None:
         if episode.id == self._elsewhere_id:

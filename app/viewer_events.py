@@ -82,6 +82,11 @@ class FollowSet(Event):
 
 
 @dataclass(frozen=True)
+class WatchLive(Event):
+    """'Watch it' was pressed: show the episode flying now."""
+
+
+@dataclass(frozen=True)
 class WatchSet(Event):
     """The "Show episodes started elsewhere" box was toggled."""
 

@@ -93,6 +93,9 @@ def test_a_link_opens_its_episode_at_its_step_with_its_layers_and_copy_link_make
     other = context.new_page()
     other.goto(link)
     wait_for(other, lambda s: s["episode"] == first and s["step"] == 7, "the copied link reopened")
+    deadline = time.monotonic() + 30  # the new tab's page may show the link before its Tab is registered
+    while len(dashboard.tabs) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
     assert dashboard.viewer.layer_boxes["relevance"].value
     context.close()
 

@@ -2,7 +2,8 @@
 
 Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
 neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (which
-shows episodes started elsewhere, the default) watches A's. A tab that closes leaves the runner's listeners."""
+shows episodes started elsewhere, the default) watches A's. C showing a world mid-flight ends nobody's episode and
+moves nobody else, and its "Watch episode N" goes back to it. A tab that closes leaves the runner's listeners."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def dashboard(tmp_path_factory):
     from gsmn.config import preset, with_overrides
 
     folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "40"}), checkpoint=folder, port=0, api_port=0,
+    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "60"}), checkpoint=folder, port=0, api_port=0,
                   checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=tmp_path_factory.mktemp("data"))
     try:
         old = d.runner.call(StartEpisode(71, None, "model", None))  # over the API: an episode to replay
@@ -93,7 +94,7 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     # is shared: set here for the test's timing)
     field(a, "Policy").click()
     a.get_by_role("option", name="Expert (oracle)", exact=True).click()
-    dashboard.runner.call(SetSpeed(3.0))
+    dashboard.runner.call(SetSpeed(1.5))
     try:
         a.get_by_role("button", name="Run", exact=True).click()
         new = until(lambda: shown(a)["episode"] not in (None, old.id) and shown(a), "A's new episode")["episode"]
@@ -111,6 +112,21 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
         before = shown(a)["step"]
         until(lambda: shown(a)["episode"] == new and shown(a)["step"] > before, "A's live steps going on")
         assert tab_a.viewer.view.follow and tab_a.viewer.view.episode is episode
+
+        # C shows another world while A's episode flies (a second simulator renders it): A's episode flies on, A
+        # still shows it, and C can go back to it
+        box = field(c, "Environment id")
+        box.fill("72")
+        box.press("Enter")
+        c.get_by_role("button", name="Show", exact=True).click()
+        c.get_by_text("Environment 72").first.wait_for()
+        assert tab_c.viewer.scene.world.env_id == 72 and tab_c.viewer.view.episode is None
+        assert episode.status != "cancelled", "showing a world ended the flying episode"
+        assert episode.live, "the new episode ended before C showed its world: the test's timing is off"
+        assert tab_a.viewer.view.episode is episode
+        assert shown(a)["episode"] == new and tab_a.viewer.scene.world.env_id == 75
+        c.get_by_role("button", name=f"Watch episode {new}").click()
+        until(lambda: shown(c)["episode"] == new, "C back on A's episode")
         until(lambda: not episode.live, "the new episode to end", 120)
     finally:
         dashboard.runner.call(SetSpeed(None))
