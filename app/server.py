@@ -263,6 +263,7 @@ class Tab:
 
     def __init__(self, client: viser.ClientHandle, dashboard: Dashboard):
         self.client = client
+        started = time.perf_counter()
         self.viewer = Viewer(client, dashboard.runner, dashboard.env_id)
         try:
             self.jobs_view = JobsView(self.viewer, dashboard.jobs)
@@ -271,6 +272,8 @@ class Tab:
         except BaseException:
             self.close()  # the parts built so far
             raise
+        self.built_seconds = time.perf_counter() - started  # the server's share of opening a tab
+        log.info("tab %d built in %.2f s", client.client_id, self.built_seconds)
 
     def close(self) -> None:
         for part in (getattr(self, "episodes_view", None), getattr(self, "presenter", None),
