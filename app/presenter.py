@@ -29,6 +29,7 @@ from app.colors import png_bytes, upscale
 from app.export import heads_for as _heads_for
 from app.export import result_line, step_layers
 from app.panels import cell_marks_html
+from app.viewer_events import WatchSet
 
 log = logging.getLogger("gsmn.dashboard")
 # the result table too: the card says the result, and without the table Run and the timeline fit on a 1280x800 screen
@@ -81,8 +82,6 @@ class Presenter:
         if self.toggle.value != on:
             self.toggle.value = on
         v, gui = self.viewer, self.client.gui
-        from app.viewer_events import WatchSet
-
         if on:
             self.watched_before = bool(v.watch_others.value)
             v.watch_others.value = False

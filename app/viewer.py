@@ -572,19 +572,9 @@ class Viewer(RunnerListener):
                 self._start(episode)
                 return False
             case WatchLive():
-                live = self.runner.live
-                if live is not None and live is not v.episode:
-                    self._start(live)
-                    v.cursor = max(0, len(live.steps) - 1)
-                    return True
-                return False
-            case WatchSet():
-                live = self.runner.live
-                if self.watching() and live is not None and live is not v.episode:
-                    self._start(live)
-                    v.cursor = max(0, len(live.steps) - 1)
-                    return True
-                return False
+                return self._watch_live()
+            case WatchSet():  # ticked: the episode flying now shows at once
+                return self.watching() and self._watch_live()
             case StepRecorded(episode):
                 if episode is v.episode:
                     if v.follow:
@@ -700,6 +690,15 @@ class Viewer(RunnerListener):
         live = self.runner.live
         if live is not None:  # still flying, unseen here (this tab's own, or another's): say so, with a way back
             self._started_elsewhere(live)
+
+    def _watch_live(self) -> bool:
+        """Show the episode flying now, at its newest step; False when there is none or it is shown already."""
+        live = self.runner.live
+        if live is None or live is self.view.episode:
+            return False
+        self._start(live)
+        self.view.cursor = max(0, len(live.steps) - 1)
+        return True
 
     def _started_elsewhere(self, episode: Episode | None) -> None:
         """Say (or stop saying) that an episode flies that this tab does not show (another tab's, the API's, or its

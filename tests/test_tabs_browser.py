@@ -11,6 +11,7 @@ import time
 
 import playwright.sync_api as playwright_api
 import pytest
+from test_page_newcomer import until
 
 from app.browser import CHROMIUM, CHROMIUM_ARGS, field
 from app.commands import SetSpeed, StartEpisode
@@ -27,7 +28,7 @@ def dashboard(tmp_path_factory):
                   checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=tmp_path_factory.mktemp("data"))
     try:
         old = d.runner.call(StartEpisode(71, None, "model", None))  # over the API: an episode to replay
-        until(lambda: not old.live, "the old episode to end", 120)
+        until(lambda: not old.live, what="the old episode to end", timeout=120)
         d.keeper.flush()
         d.old = old
         yield d
@@ -42,16 +43,6 @@ def browser(dashboard):
         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         yield browser
         browser.close()
-
-
-def until(predicate, what: str, timeout: float = 60.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def shown(page) -> dict:
@@ -72,11 +63,11 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
         page = context.new_page()
         page.set_default_timeout(60_000)
         page.goto(base + query)
-        until(lambda count=count: len(dashboard.tabs) == count, f"tab {name} to connect")
+        until(lambda count=count: len(dashboard.tabs) == count, what=f"tab {name} to connect")
         pages[name] = page
     a, b, c = pages["a"], pages["b"], pages["c"]
     tab_a, tab_b, tab_c = list(dashboard.tabs.values())  # in the order they connected
-    until(lambda: shown(b) == {"episode": old.id, "step": 3}, "tab B on the old episode at step 3")
+    until(lambda: shown(b) == {"episode": old.id, "step": 3}, what="tab B on the old episode at step 3")
     assert not tab_b.viewer.watch_others.value  # opening a kept episode keeps the tab on it
     assert tab_a.viewer.watch_others.value and tab_c.viewer.watch_others.value
 
@@ -97,20 +88,21 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     dashboard.runner.call(SetSpeed(1.5))
     try:
         a.get_by_role("button", name="Run", exact=True).click()
-        new = until(lambda: shown(a)["episode"] not in (None, old.id) and shown(a), "A's new episode")["episode"]
+        new = until(lambda: shown(a)["episode"] not in (None, old.id) and shown(a),
+                    what="A's new episode")["episode"]
         episode = dashboard.runner.episodes.get(new)
         assert episode.origin == tab_a.viewer.origin and episode.env_id == 75
-        until(lambda: shown(c)["episode"] == new, "tab C watching A's episode")
+        until(lambda: shown(c)["episode"] == new, what="tab C watching A's episode")
         b.get_by_text("is flying, started in another tab").first.wait_for()
 
         # B scrubs its old episode while A's flies: B moves, A follows its live step
         b.get_by_role("slider").first.focus()
         for _ in range(4):
             b.keyboard.press("ArrowRight")
-        until(lambda: shown(b) == {"episode": old.id, "step": 7}, "B scrubbed to step 7")
+        until(lambda: shown(b) == {"episode": old.id, "step": 7}, what="B scrubbed to step 7")
         assert episode.live, "the new episode ended before B scrubbed: the test's timing is off"
         before = shown(a)["step"]
-        until(lambda: shown(a)["episode"] == new and shown(a)["step"] > before, "A's live steps going on")
+        until(lambda: shown(a)["episode"] == new and shown(a)["step"] > before, what="A's live steps going on")
         assert tab_a.viewer.view.follow and tab_a.viewer.view.episode is episode
 
         # C shows another world while A's episode flies (a second simulator renders it): A's episode flies on, A
@@ -126,30 +118,31 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
         assert tab_a.viewer.view.episode is episode
         assert shown(a)["episode"] == new and tab_a.viewer.scene.world.env_id == 75
         c.get_by_role("button", name=f"Watch episode {new}").click()
-        until(lambda: shown(c)["episode"] == new, "C back on A's episode")
-        until(lambda: not episode.live, "the new episode to end", 120)
+        until(lambda: shown(c)["episode"] == new, what="C back on A's episode")
+        until(lambda: not episode.live, what="the new episode to end", timeout=120)
     finally:
         dashboard.runner.call(SetSpeed(None))
     last = len(episode.steps) - 1
-    until(lambda: shown(a) == {"episode": new, "step": last}, "A at its episode's last step")
+    until(lambda: shown(a) == {"episode": new, "step": last}, what="A at its episode's last step")
     assert shown(b) == {"episode": old.id, "step": 7}  # B never moved
     assert tab_b.viewer.scene.world.env_id == 71 and tab_a.viewer.scene.world.env_id == 75
     until(lambda: b.get_by_text("is flying, started in another tab").count() == 0
-          or not b.get_by_text("is flying, started in another tab").first.is_visible(), "B's note to go")
+          or not b.get_by_text("is flying, started in another tab").first.is_visible(), what="B's note to go")
 
     # and A scrubbing back leaves B where it is
     a.get_by_role("slider").first.focus()
     a.keyboard.press("Home")
-    until(lambda: shown(a) == {"episode": new, "step": 0}, "A back at step 0")
+    until(lambda: shown(a) == {"episode": new, "step": 0}, what="A back at step 0")
     time.sleep(0.5)
     assert shown(b) == {"episode": old.id, "step": 7}
 
     # a tab that goes leaves nothing behind
     viewer_c = tab_c.viewer
     c.close()
-    until(lambda: len(dashboard.tabs) == 2, "tab C to be dropped")
+    until(lambda: len(dashboard.tabs) == 2, what="tab C to be dropped")
     parts = (viewer_c, tab_c.episodes_view, tab_c.jobs_view)
-    until(lambda: not any(part in dashboard.runner.listeners for part in parts), "tab C's listeners to go", 15)
-    until(lambda: not viewer_c.thread.is_alive(), "tab C's UI thread to end", 15)
+    until(lambda: not any(part in dashboard.runner.listeners for part in parts), what="tab C's listeners to go",
+          timeout=15)
+    until(lambda: not viewer_c.thread.is_alive(), what="tab C's UI thread to end", timeout=15)
     assert len([x for x in dashboard.runner.listeners if x in (tab_a.viewer, tab_b.viewer)]) == 2
     context.close()
