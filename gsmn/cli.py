@@ -578,8 +578,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # `kill PID` ends a command the way Ctrl-C does: cleanup runs, so `collect`, `eval` and `train dagger` shut
     # their worker processes down instead of leaving them orphaned. Saved work is written atomically either way.
-    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if threading.current_thread() is \
-        threading.main_thread() else None
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main_thread else None
+    # A shell starts a background job (`gsmn serve &`, a CI step, nohup) with SIGINT ignored, and Python then keeps
+    # it ignored: `kill -INT PID` would do nothing and a supervisor's graceful stop would wait out its timeout.
+    if main_thread and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return args.func(args)
     except (ConfigError, ValueError, FileNotFoundError) as e:

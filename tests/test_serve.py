@@ -1,4 +1,5 @@
-"""`gsmn serve` (the README's main command) starts a real server that prints its URL and serves the page."""
+"""`gsmn serve` (the README's main command) starts a real server that prints its URL and serves the page, and stops
+on SIGINT even when started as a background job (which a shell starts with SIGINT ignored)."""
 
 from __future__ import annotations
 
@@ -37,5 +38,26 @@ def test_serve_prints_its_url_and_serves_the_page(tmp_path):
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def test_serve_started_with_sigint_ignored_still_stops_on_it(tmp_path):
+    # what `gsmn serve &` in a script, or a CI step's background job, hands the server
+    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--port", "0", "--api-port", "0",
+                             "--preset", "tiny", "--data-dir", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        lines = []
+        while not any("API: http" in line for line in lines):
+            line = proc.stdout.readline()
+            assert line, "gsmn serve exited before it served:\n" + "".join(lines)
+            lines.append(line)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
             proc.kill()
             proc.wait()
