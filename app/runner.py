@@ -490,6 +490,7 @@ class Runner(ComparingRunner):
         if c.steps_per_second is not None and not c.steps_per_second > 0:
             raise RunnerError(f"steps_per_second must be positive or null, got {c.steps_per_second}")
         self.speed = c.steps_per_second
+        self._notify("on_speed", self.speed)  # every tab's Speed box shows the one speed
         return self.speed
 
     def _do_Ground(self, c: Ground) -> Grounding:

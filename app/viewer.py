@@ -92,6 +92,7 @@ from app.viewer_events import (
     PlaybackPressed,
     ShowAnswered,
     SidesTyped,
+    SpeedChanged,
     StartAnswered,
     StateChanged,
     StepRecorded,
@@ -111,6 +112,14 @@ EXPERT_CHOICE = "Expert (oracle)"
 SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 steps/s)": 10.0,
           "slow (2 steps/s)": 2.0}
 REPLAY_STEPS_PER_SECOND = 10.0
+
+
+def speed_choice(steps_per_second: float | None) -> str:
+    """The Speed box's entry for a pace: one of SPEEDS, or the figure itself where the API set another."""
+    for label, value in SPEEDS.items():
+        if value == steps_per_second:
+            return label
+    return f"{steps_per_second:g} steps/s (set through the API)"
 # A live episode is drawn at most this often, whatever the simulator's pace: each drawn step costs the page a 3D
 # redraw, and a browser on the same cores would take that time from the simulator (docs/dashboard.md).
 LIVE_FRAMES_PER_SECOND = 10.0
@@ -218,6 +227,9 @@ class Viewer(RunnerListener):
     def on_state(self, episode: Episode | None, paused: bool) -> None:
         self._events.put(StateChanged(episode))
 
+    def on_speed(self, steps_per_second: float | None) -> None:
+        self._events.put(SpeedChanged(steps_per_second))
+
     # -- the GUI ----------------------------------------------------------------------------------------------
     def _build_controls(self, env_id: int) -> None:
         gui = self.client.gui
@@ -263,7 +275,8 @@ class Viewer(RunnerListener):
             self.watch_others = gui.add_checkbox(WATCH_LABEL, True,
                                                  hint="episodes flown from other tabs or the API appear here as "
                                                       "they start; untick to keep this tab on its own")
-            self.speed = gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0],
+            speed = speed_choice(self.runner.speed)
+            self.speed = gui.add_dropdown("Speed", self._speed_options(speed), initial_value=speed,
                                           hint="the simulator's pace, for every tab")
             self.shared_note = gui.add_markdown(SHARED_NOTE)
         with gui.add_folder("Counterfactual: another instruction, same map"):
@@ -480,8 +493,12 @@ class Viewer(RunnerListener):
         self._events.put(PlaybackPressed(event.target.value))
 
     def _on_speed(self, event: viser.GuiEvent) -> None:
-        if event.client is not None:
+        if event.client is not None and self.speed.value in SPEEDS:  # a person chose (our updates: client None)
             self.runner.post(SetSpeed(SPEEDS[self.speed.value]))
+
+    @staticmethod
+    def _speed_options(shown: str) -> tuple[str, ...]:
+        return tuple(SPEEDS) if shown in SPEEDS else (*SPEEDS, shown)
 
     def _on_timeline(self, event: viser.GuiEvent) -> None:
         if event.client is not None:  # a person moved it (our own updates come with client None)
@@ -595,6 +612,13 @@ class Viewer(RunnerListener):
             case StateChanged(episode):
                 if episode is v.episode and v.episode is not None:
                     self.status.content = status_line(v.episode)
+                return False
+            case SpeedChanged(steps_per_second):
+                shown = speed_choice(steps_per_second)
+                if self.speed.value != shown:
+                    with self.client.atomic():
+                        self.speed.options = self._speed_options(shown)
+                        self.speed.value = shown
                 return False
             case CursorMoved(step):
                 if v.episode is not None and v.episode.steps:

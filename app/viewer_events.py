@@ -45,6 +45,13 @@ class StateChanged(Event):
     episode: Episode | None
 
 
+@dataclass(frozen=True)
+class SpeedChanged(Event):
+    """The simulator's pace was set (by any tab or the API)."""
+
+    steps_per_second: float | None
+
+
 # -- answers to commands the page posted --------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class ShowAnswered(Event):

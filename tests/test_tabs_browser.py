@@ -3,7 +3,8 @@
 Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
 neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (which
 shows episodes started elsewhere, the default) watches A's. C showing a world mid-flight ends nobody's episode and
-moves nobody else, and its "Watch episode N" goes back to it. A tab that closes leaves the runner's listeners."""
+moves nobody else, and its "Watch episode N" goes back to it. The pace, set by the API or chosen in one tab, shows
+in every tab's Speed box. A tab that closes leaves the runner's listeners."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from test_page_newcomer import until
 from app.browser import CHROMIUM, CHROMIUM_ARGS, field
 from app.commands import SetSpeed, StartEpisode
 from app.fixtures import make_untrained_checkpoint
+from app.viewer import speed_choice
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +88,8 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     field(a, "Policy").click()
     a.get_by_role("option", name="Expert (oracle)", exact=True).click()
     dashboard.runner.call(SetSpeed(1.5))
+    for page in (a, b, c):  # the pace is the simulator's: every tab's Speed box says so, even one the API set
+        until(lambda page=page: field(page, "Speed").input_value() == speed_choice(1.5), what="the API's pace shown")
     try:
         a.get_by_role("button", name="Run", exact=True).click()
         new = until(lambda: shown(a)["episode"] not in (None, old.id) and shown(a),
@@ -135,6 +139,14 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     until(lambda: shown(a) == {"episode": new, "step": 0}, what="A back at step 0")
     time.sleep(0.5)
     assert shown(b) == {"episode": old.id, "step": 7}
+
+    # a pace chosen in one tab shows in the others
+    field(c, "Speed").click()
+    c.get_by_role("option", name="slow (2 steps/s)", exact=True).click()
+    until(lambda: dashboard.runner.speed == 2.0, what="C's pace reaching the simulator")
+    until(lambda: field(a, "Speed").input_value() == "slow (2 steps/s)", what="A's Speed box following C's")
+    dashboard.runner.call(SetSpeed(None))
+    until(lambda: field(b, "Speed").input_value() == "as fast as it goes", what="B's Speed box following the API")
 
     # a tab that goes leaves nothing behind
     viewer_c = tab_c.viewer
