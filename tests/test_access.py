@@ -4,6 +4,7 @@ token) every API request and the WebSocket need the token printed at start-up.""
 
 from __future__ import annotations
 
+import browser_support
 import httpx
 import pytest
 import viser
@@ -122,35 +123,23 @@ def test_a_token_given_on_loopback_is_required_too(tmp_path):
 def test_the_page_carries_its_token_to_its_websocket_in_a_browser(tmp_path):
     """Headless Chromium: the printed URL (with ?token=) gives a working page, whose WebSocket carries the cookie
     that URL set; the bare URL gets the page's HTML but no connection, so no controls."""
-    import os
-    import shutil
-
-    import playwright.sync_api as playwright_api
-
-    chromium = os.environ.get("GSMN_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-    assert chromium, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
     d = dashboard(tmp_path, token="")
     try:
         assert "?token=" in d.urls.page
-        with playwright_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox", "--disable-gpu",
-                                                                        "--enable-unsafe-swiftshader"])
-            try:
-                page = browser.new_page()
-                page.set_default_timeout(60_000)
-                page.goto(d.urls.page)
-                page.get_by_role("button", name="Run", exact=True).wait_for()  # the GUI came over the WebSocket
-                bare = browser.new_context().new_page()  # no cookie
-                bare.goto(page_origin(d))
-                opens = """([url, protocol]) => new Promise(done => {
-                    const ws = new WebSocket(url, [protocol]);
-                    ws.onopen = () => { ws.close(); done(true); };
-                    ws.onerror = () => done(false);
-                })"""
-                assert page.evaluate(opens, [ws_url(d), PROTOCOL[0]]) is True
-                assert bare.evaluate(opens, [ws_url(d), PROTOCOL[0]]) is False
-                assert bare.get_by_role("button", name="Run", exact=True).count() == 0
-            finally:
-                browser.close()
+        with browser_support.chromium() as browser:
+            page = browser.new_page()
+            page.set_default_timeout(60_000)
+            page.goto(d.urls.page)
+            page.get_by_role("button", name="Run", exact=True).wait_for()  # the GUI came over the WebSocket
+            bare = browser.new_context().new_page()  # no cookie
+            bare.goto(page_origin(d))
+            opens = """([url, protocol]) => new Promise(done => {
+                const ws = new WebSocket(url, [protocol]);
+                ws.onopen = () => { ws.close(); done(true); };
+                ws.onerror = () => done(false);
+            })"""
+            assert page.evaluate(opens, [ws_url(d), PROTOCOL[0]]) is True
+            assert bare.evaluate(opens, [ws_url(d), PROTOCOL[0]]) is False
+            assert bare.get_by_role("button", name="Run", exact=True).count() == 0
     finally:
         d.close()

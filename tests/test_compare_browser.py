@@ -7,12 +7,10 @@ Needs the `playwright` package and a Chromium, as tests/test_dashboard_browser.p
 
 from __future__ import annotations
 
-import time
-
-import playwright.sync_api as playwright_api
+import browser_support
 import pytest
 
-from app.browser import CHROMIUM, CHROMIUM_ARGS, field
+from app.browser import field
 from app.fixtures import make_untrained_checkpoint
 
 HORIZON = 40
@@ -20,31 +18,17 @@ HORIZON = 40
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
     root = tmp_path_factory.mktemp("checkpoints")
     folder = make_untrained_checkpoint(root / "gsmn")
     make_untrained_checkpoint(root / "other", seed=1)  # a second checkpoint: another policy to compare with
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
-                  api_port=0, checkpoints_root=root)
-    yield d
-    d.close()
+    with browser_support.dashboard(tmp_path_factory, HORIZON, checkpoint=folder, checkpoints_root=root) as d:
+        yield d
 
 
 @pytest.fixture(scope="module")
 def page(dashboard):
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1500, "height": 950})
-        page.set_default_timeout(60_000)
-        page.goto(dashboard.urls.page)
-        page.get_by_role("button", name="Run", exact=True).wait_for()
+    with browser_support.page_on(dashboard, 1500, 950) as page:
         yield page
-        browser.close()
-
-
 
 
 def choose(page, label: str, option: str) -> None:
@@ -66,20 +50,11 @@ def state(page) -> dict:
 
 
 def wait_for(page, predicate, what: str, timeout: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        s = state(page)
-        if predicate(s):
-            return s
-        page.wait_for_timeout(100)
-    raise AssertionError(f"timed out waiting for {what}; last state {state(page)}")
+    return browser_support.poll(lambda: state(page), predicate, what, timeout)
 
 
 def wait_runner(condition, timeout: float = 240.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
+    browser_support.until(condition, timeout, "the runner")
 
 
 def newest(before: set[int], dashboard):

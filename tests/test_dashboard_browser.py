@@ -9,42 +9,24 @@ proves nothing.
 
 from __future__ import annotations
 
-import time
-
-import playwright.sync_api as playwright_api
+import browser_support
 import pytest
 
-from app.browser import CHROMIUM, CHROMIUM_ARGS, field
-from app.fixtures import make_untrained_checkpoint
+from app.browser import field
 
 HORIZON = 60
 
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
-                  api_port=0, checkpoints_root=tmp_path_factory.mktemp("empty"),
-                  data_dir=tmp_path_factory.mktemp("data"))  # the episodes it flies are kept there
-    yield d
-    d.close()
+    with browser_support.dashboard(tmp_path_factory, HORIZON) as d:  # the episodes it flies are kept
+        yield d
 
 
 @pytest.fixture(scope="module")
 def page(dashboard):
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1400, "height": 900})
-        page.set_default_timeout(60_000)
-        page.goto(dashboard.urls.page)
+    with browser_support.page_on(dashboard, 1400, 900) as page:
         yield page
-        browser.close()
-
-
 
 
 def maps_state(page) -> dict:
@@ -59,13 +41,7 @@ def maps_state(page) -> dict:
 
 
 def wait_until(page, predicate, timeout: float = 90.0, what: str = "") -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        state = maps_state(page)
-        if predicate(state):
-            return state
-        page.wait_for_timeout(100)
-    raise AssertionError(f"timed out waiting for {what}; last state {maps_state(page)}")
+    return browser_support.poll(lambda: maps_state(page), predicate, what, timeout)
 
 
 def test_type_run_watch_finish_and_ask_what_if(dashboard, page):

@@ -9,11 +9,10 @@ import subprocess
 import sys
 import time
 
+import browser_support
 import httpx
-import playwright.sync_api as playwright_api
 import pytest
 from PIL import Image
-from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS
 
 from app.fixtures import make_untrained_checkpoint
 
@@ -75,8 +74,7 @@ def test_the_command_line_exports_from_the_data_folder_and_the_page_plays_offlin
                           capture_output=True, text=True, timeout=300)
     assert gone.returncode == 1 and "no episode 999" in gone.stderr
 
-    with playwright_api.sync_playwright() as p:  # no server runs: the dashboard was closed above
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    with browser_support.chromium() as browser:  # no server runs: the dashboard was closed above
         page = browser.new_page(viewport={"width": 1280, "height": 800})
         requests = []
         page.on("request", lambda r: requests.append(r.url))
@@ -102,4 +100,3 @@ def test_the_command_line_exports_from_the_data_folder_and_the_page_plays_offlin
         page.get_by_role("button", name="Play").click()  # plays on by itself
         page.wait_for_function("() => +document.body.dataset.step >= 3", timeout=10_000)
         assert all(u.startswith(("file:", "data:")) for u in requests), requests
-        browser.close()

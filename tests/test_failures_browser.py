@@ -14,54 +14,31 @@ import re
 import time
 from pathlib import Path
 
-import playwright.sync_api as playwright_api
+import browser_support
 import pytest
 
-from app.browser import CHROMIUM, CHROMIUM_ARGS, field
-from app.fixtures import make_untrained_checkpoint
+from app.browser import field
 from app.panels import region_text, steps_in_region
 
 HORIZON = 40
 
 
-
-
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
-    root = tmp_path_factory.mktemp("failures")
-    folder = make_untrained_checkpoint(root / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
-                  api_port=0, checkpoints_root=root / "empty", data_dir=root / "data")
-    yield d
-    for run in d.jobs.db.runs(("queued", "running")):  # no job outlives the test
-        d.jobs.cancel_run(run.id)
-    d.close()
+    with browser_support.dashboard(tmp_path_factory, HORIZON) as d:
+        yield d
+        for run in d.jobs.db.runs(("queued", "running")):  # no job outlives the test
+            d.jobs.cancel_run(run.id)
 
 
 @pytest.fixture(scope="module")
 def page(dashboard):
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.set_default_timeout(60_000)
-        page.goto(dashboard.urls.page)
+    with browser_support.page_on(dashboard, 1400, 1000) as page:
         yield page
-        browser.close()
 
 
 def wait_js(page, script: str, predicate, timeout: float = 120.0, what: str = ""):
-    deadline = time.monotonic() + timeout
-    value = None
-    while time.monotonic() < deadline:
-        value = page.evaluate(script)
-        if predicate(value):
-            return value
-        page.wait_for_timeout(200)
-    raise AssertionError(f"timed out waiting for {what}; last {value!r}")
+    return browser_support.poll(lambda: page.evaluate(script), predicate, what, timeout, every=0.2)
 
 
 def evaluate_ids(page, dashboard, ids: str, label: str) -> int:

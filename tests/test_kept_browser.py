@@ -8,45 +8,30 @@ from __future__ import annotations
 import re
 import time
 
-import playwright.sync_api as playwright_api
+import browser_support
 import pytest
-from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS, field
 
+from app.browser import field
 from app.commands import StartEpisode
-from app.fixtures import make_untrained_checkpoint
 
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "30"}), checkpoint=folder, port=0, api_port=0,
-                  checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=tmp_path_factory.mktemp("data"))
-    try:
+    with browser_support.dashboard(tmp_path_factory, 30) as d:
         ids = []
         for env_id in (70, 71, 72):  # three kept episodes; the page shows the last
             episode = d.runner.call(StartEpisode(env_id, None, "model", None))
-            deadline = time.monotonic() + 120
-            while episode.live:
-                assert time.monotonic() < deadline
-                time.sleep(0.1)
+            browser_support.until(lambda episode=episode: not episode.live, 120, f"the episode in {env_id} to end")
             ids.append(episode.id)
         d.keeper.flush()
         d.ids = ids
         yield d
-    finally:
-        d.close()
 
 
 @pytest.fixture(scope="module")
 def browser(dashboard):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium"
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    with browser_support.chromium() as browser:
         yield browser
-        browser.close()
 
 
 def shown(page) -> dict:
@@ -59,13 +44,7 @@ def shown(page) -> dict:
 
 
 def wait_for(page, predicate, what: str, timeout: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        state = shown(page)
-        if predicate(state):
-            return state
-        page.wait_for_timeout(100)
-    raise AssertionError(f"timed out waiting for {what}; last {shown(page)}")
+    return browser_support.poll(lambda: shown(page), predicate, what, timeout)
 
 
 def test_a_link_opens_its_episode_at_its_step_with_its_layers_and_copy_link_makes_it(dashboard, browser):
@@ -93,9 +72,8 @@ def test_a_link_opens_its_episode_at_its_step_with_its_layers_and_copy_link_make
     other = context.new_page()
     other.goto(link)
     wait_for(other, lambda s: s["episode"] == first and s["step"] == 7, "the copied link reopened")
-    deadline = time.monotonic() + 30  # the new tab's page may show the link before its Tab is registered
-    while len(dashboard.tabs) < 2 and time.monotonic() < deadline:
-        time.sleep(0.1)
+    # the new tab's page may show the link before its Tab is registered
+    browser_support.until(lambda: len(dashboard.tabs) >= 2, 30, "the second tab")
     assert dashboard.viewer.layer_boxes["relevance"].value
     context.close()
 

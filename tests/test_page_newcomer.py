@@ -14,14 +14,13 @@ tests/test_dashboard_browser.py (it fails, not skips, without one).
 from __future__ import annotations
 
 import re
-import time
 
+import browser_support
 import numpy as np
-import playwright.sync_api as playwright_api
 import pytest
+from browser_support import until
 
-from app.browser import CHROMIUM, CHROMIUM_ARGS, field
-from app.fixtures import make_untrained_checkpoint
+from app.browser import field
 
 HORIZON = 40
 ENV = 76  # two palm trees
@@ -29,40 +28,14 @@ ENV = 76  # two palm trees
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)}), checkpoint=folder, port=0,
-                  api_port=0, env_id=70, checkpoints_root=tmp_path_factory.mktemp("empty"),
-                  data_dir=tmp_path_factory.mktemp("data"))
-    yield d
-    d.close()
+    with browser_support.dashboard(tmp_path_factory, HORIZON, env_id=70) as d:
+        yield d
 
 
 @pytest.fixture(scope="module")
 def page(dashboard):
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1500, "height": 1000})
-        page.set_default_timeout(60_000)
-        page.goto(dashboard.urls.page)
-        page.get_by_role("button", name="Run", exact=True).wait_for()
+    with browser_support.page_on(dashboard, 1500, 1000) as page:
         yield page
-        browser.close()
-
-
-
-
-def until(predicate, timeout: float = 60.0, what: str = ""):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def body(page) -> str:

@@ -10,41 +10,29 @@ from __future__ import annotations
 
 import time
 
-import playwright.sync_api as playwright_api
+import browser_support
 import pytest
-from test_page_newcomer import until
+from browser_support import until
 
-from app.browser import CHROMIUM, CHROMIUM_ARGS, field
+from app.browser import field
 from app.commands import SetSpeed, StartEpisode
-from app.fixtures import make_untrained_checkpoint
 from app.viewer import speed_choice
 
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):
-    from app.server import Dashboard
-    from gsmn.config import preset, with_overrides
-
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "60"}), checkpoint=folder, port=0, api_port=0,
-                  checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=tmp_path_factory.mktemp("data"))
-    try:
+    with browser_support.dashboard(tmp_path_factory, 60) as d:
         old = d.runner.call(StartEpisode(71, None, "model", None))  # over the API: an episode to replay
         until(lambda: not old.live, what="the old episode to end", timeout=120)
         d.keeper.flush()
         d.old = old
         yield d
-    finally:
-        d.close()
 
 
 @pytest.fixture(scope="module")
 def browser(dashboard):
-    assert CHROMIUM, "no Chromium found: ./test.sh installs Debian's chromium"
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    with browser_support.chromium() as browser:
         yield browser
-        browser.close()
 
 
 def shown(page) -> dict:

@@ -1,0 +1,82 @@
+"""What the browser tests share: a dashboard on an untrained tiny checkpoint with folders of its own (never the
+repository's `data/dashboard`), a headless Chromium, a page open on the dashboard, and waiting for a condition.
+
+Like the tests that use them these fail, not skip, without Playwright or a Chromium (./test.sh installs both).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import playwright.sync_api as playwright_api
+
+from app.browser import CHROMIUM, CHROMIUM_ARGS
+from app.fixtures import make_untrained_checkpoint
+
+NO_CHROMIUM = "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
+
+
+def poll(get: Callable[[], Any], done: Callable[[Any], Any], what: str, timeout: float = 60.0,
+         every: float = 0.1) -> Any:
+    """Call `get` until `done` holds for its value, and return that value; fail saying `what` and the last value."""
+    deadline = time.monotonic() + timeout
+    value = None
+    while time.monotonic() < deadline:
+        value = get()
+        if done(value):
+            return value
+        time.sleep(every)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}; last {value!r}")
+
+
+def until(predicate: Callable[[], Any], timeout: float = 60.0, what: str = "") -> Any:
+    """Wait until `predicate()` is truthy and return it."""
+    return poll(predicate, bool, what or "a condition", timeout)
+
+
+@contextlib.contextmanager
+def dashboard(tmp_path_factory, horizon: int, **options) -> Iterator[Any]:
+    """A Dashboard of the tiny preset flying `horizon` steps at most, on free ports, closed afterwards. By default
+    its checkpoint is an untrained GSMN, it offers no other, and it keeps its record in a folder of its own;
+    `options` go to Dashboard (another `checkpoint`, `checkpoints_root`, `env_id`, ...)."""
+    from app.server import Dashboard
+    from gsmn.config import preset, with_overrides
+
+    root = tmp_path_factory.mktemp("dashboard")
+    if "checkpoint" not in options:
+        options["checkpoint"] = make_untrained_checkpoint(root / "checkpoint" / "gsmn")
+    if "checkpoints_root" not in options:
+        (root / "offered").mkdir()
+        options["checkpoints_root"] = root / "offered"
+    options.setdefault("data_dir", root / "data")
+    d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": str(horizon)}), port=0, api_port=0, **options)
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+@contextlib.contextmanager
+def chromium() -> Iterator[playwright_api.Browser]:
+    """A headless Chromium, closed afterwards."""
+    assert CHROMIUM, NO_CHROMIUM
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+@contextlib.contextmanager
+def page_on(dashboard, width: int, height: int) -> Iterator[playwright_api.Page]:
+    """A page of that size in its own Chromium, open on the dashboard once its Run button shows."""
+    with chromium() as browser:
+        page = browser.new_page(viewport={"width": width, "height": height})
+        page.set_default_timeout(60_000)
+        page.goto(dashboard.urls.page)
+        page.get_by_role("button", name="Run", exact=True).wait_for()
+        yield page
