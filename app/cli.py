@@ -46,15 +46,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except Exception as e:  # noqa: BLE001 - e.g. an explicit --checkpoint that does not load
         print(f"gsmn serve: error: {e}", file=sys.stderr)
         return 2
-    urls = dashboard.urls
-    print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
-    moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
-    print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
-    for note in urls.notes:  # off loopback: a warning and the real addresses; the token
-        print(note, flush=True)
-    print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message, flush=True)
-    print(f"data: {dashboard.jobs.describe()}", flush=True)
-    try:
+    try:  # from here on Ctrl-C, at any moment, closes the dashboard
+        urls = dashboard.urls
+        print(f"gsmn dashboard: {urls.page}  (Ctrl+C to stop)", flush=True)
+        moved = f" (port {args.api_port} was taken)" if urls.api_moved else ""
+        print(f"API: {urls.api}/api{moved}  OpenAPI docs: {urls.api}/docs", flush=True)
+        for note in urls.notes:  # off loopback: a warning and the real addresses; the token
+            print(note, flush=True)
+        print(("model: " if dashboard.runner.has_model else "no model: ") + dashboard.runner.checkpoint_message,
+              flush=True)
+        print(f"data: {dashboard.jobs.describe()}", flush=True)
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:

@@ -112,14 +112,6 @@ EXPERT_CHOICE = "Expert (oracle)"
 SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 steps/s)": 10.0,
           "slow (2 steps/s)": 2.0}
 REPLAY_STEPS_PER_SECOND = 10.0
-
-
-def speed_choice(steps_per_second: float | None) -> str:
-    """The Speed box's entry for a pace: one of SPEEDS, or the figure itself where the API set another."""
-    for label, value in SPEEDS.items():
-        if value == steps_per_second:
-            return label
-    return f"{steps_per_second:g} steps/s (set through the API)"
 # A live episode is drawn at most this often, whatever the simulator's pace: each drawn step costs the page a 3D
 # redraw, and a browser on the same cores would take that time from the simulator (docs/dashboard.md).
 LIVE_FRAMES_PER_SECOND = 10.0
@@ -129,6 +121,14 @@ SHARED_NOTE = ("<small>This tab has its own timeline, episode, counterfactual an
                "the one simulator (one episode flies at a time: Run, Pause, Step, Stop and Speed act on it for "
                "everyone) and the jobs.</small>")
 GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before drawing without it
+
+
+def speed_choice(steps_per_second: float | None) -> str:
+    """The Speed box's entry for a pace: one of SPEEDS, or the figure itself where the API set another."""
+    for label, value in SPEEDS.items():
+        if value == steps_per_second:
+            return label
+    return f"{steps_per_second:g} steps/s (set through the API)"
 
 
 @dataclass

@@ -580,9 +580,10 @@ def main(argv: list[str] | None = None) -> int:
     # their worker processes down instead of leaving them orphaned. Saved work is written atomically either way.
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main_thread else None
-    # A shell starts a background job (`gsmn serve &`, a CI step, nohup) with SIGINT ignored, and Python then keeps
+    # A shell starts a background job (`gsmn serve &` in a script, a CI step) with SIGINT ignored, and Python keeps
     # it ignored: `kill -INT PID` would do nothing and a supervisor's graceful stop would wait out its timeout.
-    if main_thread and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    ignored = main_thread and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    if ignored:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return args.func(args)
@@ -595,6 +596,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 if __name__ == "__main__":
