@@ -33,9 +33,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    import signal
+    import threading
     import time
 
     from app.server import Dashboard
+
+    # A shell starts a background job (`gsmn serve &` in a script, a CI step) with SIGINT ignored, and Python keeps
+    # it ignored: "Ctrl+C to stop" and `kill -INT PID` would do nothing, and a supervisor's graceful stop would
+    # wait out its timeout. A server is stopped by signals, so it takes SIGINT back (the other commands keep a
+    # background job's protection from the terminal's Ctrl-C).
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
     config = config_from_args(args)
     try:

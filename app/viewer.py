@@ -124,11 +124,11 @@ GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before 
 
 
 def speed_choice(steps_per_second: float | None) -> str:
-    """The Speed box's entry for a pace: one of SPEEDS, or the figure itself where the API set another."""
+    """The Speed box's entry for a pace: one of SPEEDS, or the figure itself."""
     for label, value in SPEEDS.items():
         if value == steps_per_second:
             return label
-    return f"{steps_per_second:g} steps/s (set through the API)"
+    return f"{steps_per_second:g} steps/s"  # set in code (SetSpeed), not one of the choices
 
 
 @dataclass
@@ -188,6 +188,7 @@ class Viewer(RunnerListener):
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)
+        self._events.put(SpeedChanged(runner.speed))  # the pace may have changed since the box was built
         self.thread = threading.Thread(target=self._loop, name=f"gsmn-viewer-{client.client_id}", daemon=True)
         self.thread.start()
         # what a new tab shows first: the episode flying now, else the world shown last, else its own
@@ -493,8 +494,12 @@ class Viewer(RunnerListener):
         self._events.put(PlaybackPressed(event.target.value))
 
     def _on_speed(self, event: viser.GuiEvent) -> None:
-        if event.client is not None and self.speed.value in SPEEDS:  # a person chose (our updates: client None)
+        if event.client is None:  # our own update
+            return
+        if self.speed.value in SPEEDS:
             self.runner.post(SetSpeed(SPEEDS[self.speed.value]))
+        else:  # the extra entry of a pace set in code, chosen again: show the pace the simulator has
+            self._events.put(SpeedChanged(self.runner.speed))
 
     @staticmethod
     def _speed_options(shown: str) -> tuple[str, ...]:
@@ -615,9 +620,10 @@ class Viewer(RunnerListener):
                 return False
             case SpeedChanged(steps_per_second):
                 shown = speed_choice(steps_per_second)
-                if self.speed.value != shown:
+                options = self._speed_options(shown)
+                if self.speed.value != shown or tuple(self.speed.options) != options:
                     with self.client.atomic():
-                        self.speed.options = self._speed_options(shown)
+                        self.speed.options = options
                         self.speed.value = shown
                 return False
             case CursorMoved(step):

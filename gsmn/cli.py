@@ -578,13 +578,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # `kill PID` ends a command the way Ctrl-C does: cleanup runs, so `collect`, `eval` and `train dagger` shut
     # their worker processes down instead of leaving them orphaned. Saved work is written atomically either way.
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main_thread else None
-    # A shell starts a background job (`gsmn serve &` in a script, a CI step) with SIGINT ignored, and Python keeps
-    # it ignored: `kill -INT PID` would do nothing and a supervisor's graceful stop would wait out its timeout.
-    ignored = main_thread and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
-    if ignored:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if threading.current_thread() is \
+        threading.main_thread() else None
     try:
         return args.func(args)
     except (ConfigError, ValueError, FileNotFoundError) as e:
@@ -596,8 +591,6 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        if ignored:
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 if __name__ == "__main__":

@@ -200,7 +200,8 @@ def test_without_a_model_the_api_says_so_and_the_expert_flies(tmp_path):
 
 def test_an_explicit_checkpoint_that_does_not_load_stops_serve(tmp_path):
     done = subprocess.run([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint",
-                           str(tmp_path / "missing"), "--port", "0", "--api-port", "0"],
+                           str(tmp_path / "missing"), "--port", "0", "--api-port", "0", "--data-dir",
+                           str(tmp_path / "data")],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert f"no checkpoint at {tmp_path / 'missing'}" in done.stderr

@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 
@@ -43,20 +44,20 @@ def test_serve_prints_its_url_and_serves_the_page(tmp_path):
 
 
 def test_serve_started_with_sigint_ignored_still_stops_on_it(tmp_path):
-    # what `gsmn serve &` in a script, or a CI step's background job, hands the server
-    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--port", "0", "--api-port", "0",
-                             "--preset", "tiny", "--data-dir", str(tmp_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    # what `gsmn serve &` in a script, or a CI step's background job, hands the server: a shell that ignores SIGINT
+    serve = [sys.executable, "-m", "gsmn.cli", "serve", "--port", "0", "--api-port", "0", "--preset", "tiny",
+             "--data-dir", str(tmp_path)]
+    proc = subprocess.Popen(["sh", "-c", 'trap "" INT; exec "$@"', "sh", *serve], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        lines = []
+        lines: list[str] = []
+        threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+        deadline = time.monotonic() + 120
         while not any("API: http" in line for line in lines):
-            line = proc.stdout.readline()
-            assert line, "gsmn serve exited before it served:\n" + "".join(lines)
-            lines.append(line)
+            assert proc.poll() is None and time.monotonic() < deadline, "gsmn serve did not serve:\n" + "".join(lines)
+            time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        assert proc.wait(timeout=30) == 0, "".join(lines)
     finally:
         if proc.poll() is None:
             proc.kill()
