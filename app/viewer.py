@@ -494,12 +494,9 @@ class Viewer(RunnerListener):
         self._events.put(PlaybackPressed(event.target.value))
 
     def _on_speed(self, event: viser.GuiEvent) -> None:
-        if event.client is None:  # our own update
-            return
-        if self.speed.value in SPEEDS:
+        # a person chose (our own updates come with client None); the extra entry of a pace set in code is that pace
+        if event.client is not None and self.speed.value in SPEEDS:
             self.runner.post(SetSpeed(SPEEDS[self.speed.value]))
-        else:  # the extra entry of a pace set in code, chosen again: show the pace the simulator has
-            self._events.put(SpeedChanged(self.runner.speed))
 
     @staticmethod
     def _speed_options(shown: str) -> tuple[str, ...]:

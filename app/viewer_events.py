@@ -47,7 +47,7 @@ class StateChanged(Event):
 
 @dataclass(frozen=True)
 class SpeedChanged(Event):
-    """The simulator's pace was set (by any tab or the API)."""
+    """The simulator's pace was set (in any tab, or in code with SetSpeed)."""
 
     steps_per_second: float | None
 

@@ -3,8 +3,8 @@
 Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
 neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (which
 shows episodes started elsewhere, the default) watches A's. C showing a world mid-flight ends nobody's episode and
-moves nobody else, and its "Watch episode N" goes back to it. The pace, set by the API or chosen in one tab, shows
-in every tab's Speed box. A tab that closes leaves the runner's listeners."""
+moves nobody else, and its "Watch episode N" goes back to it. The pace, set in code or chosen in one tab, shows in
+every tab's Speed box. A tab that closes leaves the runner's listeners."""
 
 from __future__ import annotations
 
