@@ -7,34 +7,16 @@ Like the tests that use them these fail, not skip, without Playwright or a Chrom
 from __future__ import annotations
 
 import contextlib
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import playwright.sync_api as playwright_api
+from support import poll, until  # noqa: F401 - the browser tests wait through this module
 
 from app.browser import CHROMIUM, CHROMIUM_ARGS
 from app.fixtures import make_untrained_checkpoint
 
 NO_CHROMIUM = "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
-
-
-def poll(get: Callable[[], Any], done: Callable[[Any], Any], what: str, timeout: float = 60.0,
-         every: float = 0.1) -> Any:
-    """Call `get` until `done` holds for its value, and return that value; fail saying `what` and the last value."""
-    deadline = time.monotonic() + timeout
-    value = None
-    while time.monotonic() < deadline:
-        value = get()
-        if done(value):
-            return value
-        time.sleep(every)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}; last {value!r}")
-
-
-def until(predicate: Callable[[], Any], timeout: float = 60.0, what: str = "") -> Any:
-    """Wait until `predicate()` is truthy and return it."""
-    return poll(predicate, bool, what or "a condition", timeout)
 
 
 @contextlib.contextmanager

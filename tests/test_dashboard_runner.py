@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from support import until
 
 from app.colors import decode_image
 from app.commands import (
@@ -31,11 +32,7 @@ from gsmn.config import preset
 
 
 def wait_for(condition, timeout: float = 90.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.02)
+    until(condition, timeout, what, every=0.02)
 
 
 class Recorder(RunnerListener):

@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from support import poll
 
 from app.fixtures import make_untrained_checkpoint
 from gsmn.attribution import BEARINGS, STAGES
@@ -85,14 +86,7 @@ def serve(tmp_path_factory):
 
 
 def wait_for(get, done, timeout: float = 300.0, what: str = "") -> dict:
-    deadline = time.monotonic() + timeout
-    body = None
-    while time.monotonic() < deadline:
-        body = get()
-        if done(body):
-            return body
-        time.sleep(0.5)
-    raise AssertionError(f"timed out waiting for {what}: {body}")
+    return poll(get, done, what or "a condition", timeout, every=0.5)
 
 
 def settled(client: httpx.Client, path: str, timeout: float = 300.0) -> dict:
