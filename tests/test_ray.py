@@ -29,6 +29,7 @@ TINY = preset("tiny")
 RAY = Path(sys.executable).with_name("ray")
 # A single-node cluster on 127.0.0.1: without this Ray swaps a loopback --node-ip-address for the host's address.
 LOOPBACK = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+HEAD_PID = "GSMN_TEST_RAY_HEAD_PID"  # in the cluster fixture's environment: the pid of its `ray start --head`
 
 
 def _free_port() -> int:
@@ -62,7 +63,7 @@ def cluster():
             time.sleep(1)
         else:
             pytest.fail("the Ray head did not come up in 120 s")
-        yield {**env, "RAY_ADDRESS": address}
+        yield {**env, "RAY_ADDRESS": address, HEAD_PID: str(head.pid)}
     finally:
         head.send_signal(signal.SIGTERM)
         try:
@@ -77,15 +78,27 @@ def _gsmn(*args: str) -> list[str]:
     return [sys.executable, "-m", "gsmn.cli", *args]
 
 
-def _actor_pids() -> list[int]:
-    """The processes of this cluster's EpisodeWorker actors (Ray names an actor's process after its class)."""
+def _parent(pid: int) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat[stat.rindex(")") + 2:].split()[1])  # the fields after the command's name: state, ppid, ...
+
+
+def _actor_pids(head: int) -> list[int]:
+    """The processes of the EpisodeWorker actors under this module's `ray start --head` (pid `head`): Ray names an
+    actor's process after its class, and its raylet, a child of that command, starts them. Another cluster on the
+    machine (a second test run, a user's) is left out."""
     pids = []
     for proc in Path("/proc").iterdir():
         try:
-            if proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::EpisodeWorker"):
+            if not (proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::EpisodeWorker")):
+                continue
+            pid = int(proc.name)
+            while pid > 1 and pid != head:
+                pid = _parent(pid)
+            if pid == head:
                 pids.append(int(proc.name))
-        except OSError:
-            continue
+        except (OSError, ValueError, IndexError):
+            continue  # gone while read
     return pids
 
 
@@ -117,7 +130,7 @@ def test_a_ray_worker_killed_mid_run_is_retried_and_no_episode_is_lost_or_counte
         while time.monotonic() < deadline and not (progress.is_file() and progress.read_text().strip()):
             assert proc.poll() is None, proc.stderr.read()
             time.sleep(0.1)
-        actors = _actor_pids()
+        actors = _actor_pids(int(cluster[HEAD_PID]))
         done_at_kill = len(progress.read_text().splitlines())
         assert len(actors) == 2 and done_at_kill < len(ids), "the run got ahead of the test"
         os.kill(actors[0], signal.SIGKILL)  # a worker lost mid-run, its episode in flight
@@ -127,7 +140,7 @@ def test_a_ray_worker_killed_mid_run_is_retried_and_no_episode_is_lost_or_counte
             proc.kill()
             proc.wait()
     assert proc.returncode == 0, stderr
-    assert actors[0] not in _actor_pids()
+    assert actors[0] not in _actor_pids(int(cluster[HEAD_PID]))
     episodes = json.loads(out.read_text())["episodes"]
     assert [e["env_id"] for e in episodes] == ids  # complete
     lines = [json.loads(x) for x in progress.read_text().splitlines()]
