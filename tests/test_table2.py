@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 from gsmn.config import LossConfig
 from gsmn.experiments import table2
 from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_data, data_needed, run_system
 from gsmn.model.losses import objectives_for
+from gsmn.training.store import EpisodeStore
 
 
 def _leaves(d: dict, prefix: str = "") -> dict:
@@ -79,11 +82,15 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     control: System = SYSTEMS[0]
     ship = layout.shipped(control)
 
-    collect_data(layout, recipe, data_needed(layout, recipe, [control]), workers=1, log=lambda s: None)
+    up_front = data_needed(layout, recipe, [control])
+    assert up_front == ("train", "dev", "seed")
+    collect_data(layout, recipe, up_front[:2], workers=1, log=lambda s: None)  # as the programme: not the seed data
     lines: list[str] = []
     stopped = run_system(control, layout, recipe, threads=1, commit=True, log=lines.append,
                          stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
     assert stopped is None
+    assert "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first" in lines
+    assert len(EpisodeStore(layout.data / "expert_seed")) == 2 and not (layout.data / "expert_seed.forward").exists()
     stage = json.loads((ship / "stage.json").read_text())
     assert (stage["stage"], stage["epoch"], stage["epochs"], stage["evaluated"]) == ("dagger", 1, 2, False)
     history = _git(repo, "log", "--format=%s").splitlines()
@@ -158,3 +165,30 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
     stage_folder(layout.latest(control), "dagger", 1, b"iteration 1")  # DAggerFM is further than any epoch
     assert table2.keep_latest(layout, [control]) == [control.name]
     assert table2.read_stage(ship)["stage"] == "dagger"
+
+
+def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_path):
+    """Two systems reaching DAggerFM together split the seed data: with the forward claim held by a live process,
+    `collect_seed` flies the ids from the last one and leaves the claim alone; a claim whose owner is dead is
+    taken over."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    recipe = RECIPES["tiny"]
+    marker = layout.data / "expert_seed.forward"
+    marker.parent.mkdir(parents=True)
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        marker.write_text(str(holder.pid))
+        assert not table2._claim(marker)
+        lines: list[str] = []
+        table2.collect_seed(layout, recipe, workers=1, log=lines.append)
+        assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
+        store = EpisodeStore(layout.data / "expert_seed")
+        assert sorted(store.keys()) == [f"env_{e:06d}" for e in table2.environments(recipe)["seed"]]
+        assert marker.read_text() == str(holder.pid)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert table2._claim(marker) and marker.read_text() == str(os.getpid())  # its owner is gone: stale
+    lines.clear()
+    table2.collect_seed(layout, recipe, workers=1, log=lines.append)
+    assert lines == [], "nothing left to collect"

@@ -309,8 +309,61 @@ def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers
                 collect_expert(store, envs[name], config, workers=workers, on_episode=lambda *_: bar.update(1))
 
 
+def collect_seed(layout: Layout, recipe: Recipe, workers: int = 1, log=print) -> None:
+    """The DAggerFM seed store, collected by a system about to start DAggerFM rather than up front: only that step
+    reads it, and every start on a new machine would otherwise spend its collection again while supervised learning
+    is still to come. Two systems arriving together share the work: the one that claims `expert_seed.forward`
+    flies the ids from the first, the other from the last, a few at a time, each skipping what is already written,
+    so they meet in the middle (deterministic by environment id, so an episode flown twice is the same file)."""
+    from gsmn.training.collect import collect_expert, episode_key
+    from gsmn.training.store import EpisodeStore
+
+    ids = environments(recipe)["seed"]
+    store = EpisodeStore(layout.data / "expert_seed")
+    missing = [e for e in ids if episode_key(e) not in store]
+    if not missing:
+        return
+    marker = layout.data / "expert_seed.forward"
+    forward = _claim(marker)
+    log(f"collecting the DAggerFM seed data: {len(missing)} of {len(ids)} expert episodes to go, "
+        f"{'first' if forward else 'last'} ids first")
+    order = missing if forward else missing[::-1]
+    chunk = 4 * max(workers, 1)
+    config = preset(recipe.preset)
+    try:
+        for k in range(0, len(order), chunk):
+            collect_expert(store, order[k:k + chunk], config, workers=workers)
+    finally:
+        if forward:
+            marker.unlink(missing_ok=True)
+
+
+def _claim(marker: Path) -> bool:
+    """Create `marker` holding this pid; False while a live process other than this one holds it."""
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(marker.read_text() or 0)
+                if pid > 0 and pid != os.getpid():
+                    os.kill(pid, 0)
+                    return False
+            except ProcessLookupError:
+                pass  # its owner died: stale
+            except (OSError, ValueError):
+                return False  # being written, or unreadable: leave it to its owner
+            marker.unlink(missing_ok=True)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        return True
+    return False
+
+
 def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
-    """The expert stores the remaining stages of `systems` read."""
+    """The expert stores the remaining stages of `systems` read (the programme leaves "seed" to `collect_seed`)."""
     needed = set()
     for system in systems:
         stage = read_stage(layout.shipped(system)) or {}
@@ -374,6 +427,8 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     if stage.get("stage") == "dagger" and _state_epoch(dagger_run) < stage["epoch"]:
         log(f"{system.name}: restoring DAggerFM iteration {stage['epoch']} from {ship}")
         restore(ship, dagger_run)
+    if _state_epoch(dagger_run) < 0:  # a new DAggerFM run starts its dataset from the seed data
+        collect_seed(layout, recipe, workers=threads, log=log)
     # a resumed run reads its weights and Adam from its own state; `init` then only names the architecture, so the
     # stage copy serves when the supervised run folder is gone
     init = sup_run / "checkpoint" if (sup_run / "checkpoint" / "meta.json").is_file() else ship
@@ -463,7 +518,9 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
     process logging to OUT/<name>/log.txt, with a progress bar per running system. Returns a shell status."""
     from tqdm import tqdm
 
-    collect_data(layout, recipe, data_needed(layout, recipe, systems), workers=2, log=log)
+    # the DAggerFM seed data is collected by each system when it reaches DAggerFM (`collect_seed`)
+    collect_data(layout, recipe, tuple(n for n in data_needed(layout, recipe, systems) if n != "seed"), workers=2,
+                 log=log)
     threads = 1 if parallel > 1 else 2
     pending, running, failed = list(systems), {}, []
     bars: dict[str, Any] = {}
