@@ -4,8 +4,8 @@ that survives losing its machine (run folders and data gone) by resuming from it
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -90,7 +90,9 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
                          stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
     assert stopped is None
     assert "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first" in lines
-    assert len(EpisodeStore(layout.data / "expert_seed")) == 2 and not (layout.data / "expert_seed.forward").exists()
+    assert len(EpisodeStore(layout.data / "expert_seed")) == 2
+    with open(layout.data / "expert_seed.lock") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # let go: this raises while it is held
     stage = json.loads((ship / "stage.json").read_text())
     assert (stage["stage"], stage["epoch"], stage["epochs"], stage["evaluated"]) == ("dagger", 1, 2, False)
     history = _git(repo, "log", "--format=%s").splitlines()
@@ -168,27 +170,28 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
 
 
 def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_path):
-    """Two systems reaching DAggerFM together split the seed data: with the forward claim held by a live process,
-    `collect_seed` flies the ids from the last one and leaves the claim alone; a claim whose owner is dead is
-    taken over."""
+    """Two systems reaching DAggerFM together split the seed data: with the lock held by a live process,
+    `collect_seed` flies the ids from the last one; once that process is gone the lock is free again."""
     layout = Layout(tmp_path / "runs", tmp_path / "ship")
     recipe = RECIPES["tiny"]
-    marker = layout.data / "expert_seed.forward"
-    marker.parent.mkdir(parents=True)
-    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    lock = layout.data / "expert_seed.lock"
+    lock.parent.mkdir(parents=True)
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a'); "
+                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(120)", str(lock)],
+                              stdout=subprocess.PIPE, text=True)
+    store = EpisodeStore(layout.data / "expert_seed")
     try:
-        marker.write_text(str(holder.pid))
-        assert not table2._claim(marker)
+        assert holder.stdout.readline().strip() == "held"
         lines: list[str] = []
         table2.collect_seed(layout, recipe, workers=1, log=lines.append)
         assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
-        store = EpisodeStore(layout.data / "expert_seed")
         assert sorted(store.keys()) == [f"env_{e:06d}" for e in table2.environments(recipe)["seed"]]
-        assert marker.read_text() == str(holder.pid)
     finally:
         holder.kill()
         holder.wait()
-    assert table2._claim(marker) and marker.read_text() == str(os.getpid())  # its owner is gone: stale
     lines.clear()
     table2.collect_seed(layout, recipe, workers=1, log=lines.append)
     assert lines == [], "nothing left to collect"
+    store.path(store.keys()[0]).unlink()
+    table2.collect_seed(layout, recipe, workers=1, log=lines.append)  # its holder is gone: the lock is free
+    assert lines == ["collecting the DAggerFM seed data: 1 of 2 expert episodes to go, first ids first"]

@@ -28,6 +28,7 @@ so the tables need nothing else.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import os
 import shutil
@@ -312,7 +313,7 @@ def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers
 def collect_seed(layout: Layout, recipe: Recipe, workers: int = 1, log=print) -> None:
     """The DAggerFM seed store, collected by a system about to start DAggerFM rather than up front: only that step
     reads it, and every start on a new machine would otherwise spend its collection again while supervised learning
-    is still to come. Two systems arriving together share the work: the one that claims `expert_seed.forward`
+    is still to come. Two systems arriving together share the work: the one that holds the lock on `expert_seed.lock`
     flies the ids from the first, the other from the last, a few at a time, each skipping what is already written,
     so they meet in the middle (deterministic by environment id, so an episode flown twice is the same file)."""
     from gsmn.training.collect import collect_expert, episode_key
@@ -323,43 +324,19 @@ def collect_seed(layout: Layout, recipe: Recipe, workers: int = 1, log=print) ->
     missing = [e for e in ids if episode_key(e) not in store]
     if not missing:
         return
-    marker = layout.data / "expert_seed.forward"
-    forward = _claim(marker)
-    log(f"collecting the DAggerFM seed data: {len(missing)} of {len(ids)} expert episodes to go, "
-        f"{'first' if forward else 'last'} ids first")
-    order = missing if forward else missing[::-1]
     chunk = 4 * max(workers, 1)
     config = preset(recipe.preset)
-    try:
+    with open(layout.data / "expert_seed.lock", "a") as lock:  # the kernel lets it go when its holder dies
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            forward = True
+        except BlockingIOError:
+            forward = False  # another system is collecting from the first id
+        log(f"collecting the DAggerFM seed data: {len(missing)} of {len(ids)} expert episodes to go, "
+            f"{'first' if forward else 'last'} ids first")
+        order = missing if forward else missing[::-1]
         for k in range(0, len(order), chunk):
             collect_expert(store, order[k:k + chunk], config, workers=workers)
-    finally:
-        if forward:
-            marker.unlink(missing_ok=True)
-
-
-def _claim(marker: Path) -> bool:
-    """Create `marker` holding this pid; False while a live process other than this one holds it."""
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    for _ in range(2):
-        try:
-            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            try:
-                pid = int(marker.read_text() or 0)
-                if pid > 0 and pid != os.getpid():
-                    os.kill(pid, 0)
-                    return False
-            except ProcessLookupError:
-                pass  # its owner died: stale
-            except (OSError, ValueError):
-                return False  # being written, or unreadable: leave it to its owner
-            marker.unlink(missing_ok=True)
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(str(os.getpid()))
-        return True
-    return False
 
 
 def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
