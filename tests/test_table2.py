@@ -55,6 +55,32 @@ def test_the_six_systems_differ_from_the_control_only_in_their_switch():
     assert {k for k in sup if sup[k] != dagger[k]} == {"train.learning_rate"}
 
 
+def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anything_starts(tmp_path):
+    """`--device cuda` moves the epochs onto a GPU, reading ahead on 4 threads, and changes nothing else, so a run
+    started on the CPU resumes there and back (both are ADJUSTABLE); a machine without one says so at once."""
+    from gsmn.training.run import ADJUSTABLE
+
+    recipe = RECIPES["paper"]
+    for system in SYSTEMS:
+        for cpu, gpu in zip(table2.system_configs(system, recipe), table2.system_configs(system, recipe, 2, "cuda"),
+                            strict=True):
+            cpu, gpu = _leaves(cpu.to_dict()), _leaves(gpu.to_dict())
+            assert {k for k in cpu if cpu[k] != gpu[k]} == {"train.device", "train.prefetch"}
+            assert (gpu["train.device"], gpu["train.prefetch"], cpu["train.device"]) == ("cuda", 4, "cpu")
+    assert {("train", "device"), ("train", "prefetch"), ("train", "threads")} <= set(ADJUSTABLE)
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, "-m", "gsmn.cli", "experiment", "table2", "--recipe", "tiny", "--out",
+                           str(out), "--ship", str(tmp_path / "ship"), "--device", "cuda"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    assert "--train.device cuda" in done.stderr and "no CUDA device" in done.stderr, done.stderr
+    assert not out.exists()  # nothing collected, nothing started
+
+
 def test_the_paired_figures_of_the_table():
     assert table2.sign_test(0, 0) == 1.0
     assert abs(table2.sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
@@ -167,6 +193,32 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
     stage_folder(layout.latest(control), "dagger", 1, b"iteration 1")  # DAggerFM is further than any epoch
     assert table2.keep_latest(layout, [control]) == [control.name]
     assert table2.read_stage(ship)["stage"] == "dagger"
+
+
+def test_a_running_system_never_replaces_a_further_stage_copy_shipped_from_elsewhere(tmp_path):
+    """Epochs trained on another machine (a GPU's) and shipped with --keep-latest while this machine's programme
+    trains on: its next stage copy would be older, so it is not written, and the log says to start again."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    recipe = dataclasses.replace(RECIPES["tiny"], epochs=3)  # a stage copy at every epoch; stopped after the second
+    control: System = SYSTEMS[0]
+    ship = layout.shipped(control)
+    collect_data(layout, recipe, ("train", "dev"), workers=1, log=lambda s: None)
+    further = {"system": control.name, "label": control.label, "stage": "dagger", "epoch": 1, "epochs": 2,
+               "evaluated": False}
+
+    def ship_from_elsewhere(stage: str, state) -> bool:  # asked after each finished epoch, once it is kept
+        if state.epoch == 1:
+            assert table2.read_stage(ship)["epoch"] == 1  # this machine's own first epoch was shipped
+            (ship / "stage.json").write_text(json.dumps(further))
+            (ship / "weights.safetensors").write_bytes(b"from elsewhere")
+        return state.epoch == 2
+
+    lines: list[str] = []
+    assert run_system(control, layout, recipe, threads=1, log=lines.append, stop_after=ship_from_elsewhere) is None
+    assert table2.read_stage(ship) == further and (ship / "weights.safetensors").read_bytes() == b"from elsewhere"
+    assert any(line.startswith(f"{control.name}: not replacing {ship}, which holds a further stage") and
+               "start the programme again" in line for line in lines), lines
+    assert table2.read_stage(layout.latest(control))["epoch"] == 2  # its own epoch 2 is still kept beside
 
 
 def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_path):

@@ -103,10 +103,14 @@ BY_NAME = {s.name: s for s in SYSTEMS}
 TABLE1 = ("gsmn", "no-plan")
 
 
-def system_configs(system: System, recipe: Recipe, threads: int = 2) -> tuple[RunConfig, RunConfig]:
-    """The supervised and the DAggerFM configuration of `system` under `recipe`."""
+def system_configs(system: System, recipe: Recipe, threads: int = 2,
+                   device: str = "cpu") -> tuple[RunConfig, RunConfig]:
+    """The supervised and the DAggerFM configuration of `system` under `recipe`. `threads` and `device` are settings a
+    run may change when it resumes (`gsmn.training.run.ADJUSTABLE`): on a GPU the episodes of the next batches are
+    read on 4 threads while one trains (`train.prefetch`: the same batches, so the same run)."""
     base = preset(recipe.preset)
-    common = {"train.batch_size": "1", "train.threads": str(threads), "train.epochs": str(recipe.epochs),
+    common = {"train.batch_size": "1", "train.threads": str(threads), "train.device": device,
+              "train.prefetch": "0" if device == "cpu" else "4", "train.epochs": str(recipe.epochs),
               "dagger.iterations": str(recipe.iterations), "dagger.rollouts_per_iteration": str(recipe.rollouts),
               "dagger.dataset_size": str(recipe.dataset_size), "dagger.beta0": str(recipe.beta0),
               "dagger.workers": "1" if threads == 1 else "2"}
@@ -200,6 +204,11 @@ def _stage_order(stage: dict | None) -> tuple[int, int]:
     if stage.get("evaluated"):
         return (2, 0)
     return (0 if stage.get("stage") == "supervised" else 1, int(stage.get("epoch", 0)))
+
+
+def _trained_order(stage: dict | None) -> tuple[int, int]:
+    """How far a stage copy's training is, evaluated or not (a longer recipe trains on past an evaluated copy)."""
+    return _stage_order({k: v for k, v in stage.items() if k != "evaluated"} if stage else None)
 
 
 def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log=print) -> list[str]:
@@ -356,7 +365,7 @@ def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[
 
 
 def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2, commit: bool = False,
-               log=print, on_progress=None, stop_after=None) -> dict | None:
+               log=print, on_progress=None, stop_after=None, device: str = "cpu") -> dict | None:
     """Train and evaluate one system, resuming from its run folders or its stage copy; returns its evaluation, or
     None when `stop_after(stage, state)` ("supervised" or "dagger", the run's TrainState after a saved epoch) ended
     it early (the stage copy made by then is kept)."""
@@ -366,7 +375,7 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     from gsmn.training.supervised import train_supervised
 
     ship = layout.shipped(system)
-    sup_config, dagger_config = system_configs(system, recipe, threads)
+    sup_config, dagger_config = system_configs(system, recipe, threads, device)
     sup_run, dagger_run = layout.run(system, "supervised"), layout.run(system, "dagger")
     stage = read_stage(ship) or {}
 
@@ -377,6 +386,11 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
                  "recipe": recipe.to_dict()}
         publish(run_root, layout.latest(system), {**stage, "evaluated": False})
         if not to_ship:
+            return
+        shipped = read_stage(ship)
+        if _trained_order(shipped) > _trained_order(stage):  # e.g. shipped from another machine while this trained
+            log(f"{system.name}: not replacing {ship}, which holds a further stage ({describe_stage(shipped, ship)}); "
+                "start the programme again to go on from there")
             return
         publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()})
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
@@ -490,15 +504,17 @@ PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabil
 
 # -- the programme ----------------------------------------------------------------------------------------------
 def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: list[System], parallel: int = 2,
-                  commit: bool = False, log=print) -> int:
-    """Every system's pipeline, `parallel` at a time (one thread each when side by side, else two), each in its own
-    process logging to OUT/<name>/log.txt, with a progress bar per running system. Returns a shell status."""
+                  commit: bool = False, log=print, device: str = "cpu") -> int:
+    """Every system's pipeline, `parallel` at a time, the machine's cores shared out among them (on two cores: one
+    thread each side by side, else two), each in its own process logging to OUT/<name>/log.txt, with a progress bar
+    per running system; training on `device`. Returns a shell status."""
     from tqdm import tqdm
 
+    cores = os.cpu_count() or 2
     # the DAggerFM seed data is collected by each system when it reaches DAggerFM (`collect_seed`)
-    collect_data(layout, recipe, tuple(n for n in data_needed(layout, recipe, systems) if n != "seed"), workers=2,
-                 log=log)
-    threads = 1 if parallel > 1 else 2
+    collect_data(layout, recipe, tuple(n for n in data_needed(layout, recipe, systems) if n != "seed"),
+                 workers=cores, log=log)
+    threads = max(1, cores // parallel)
     pending, running, failed = list(systems), {}, []
     bars: dict[str, Any] = {}
     gate_closed = False
@@ -510,7 +526,7 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
                 logfile = (layout.out / system.name / "log.txt").open("a")
                 command = [sys.executable, "-m", "gsmn.cli", "experiment", "table2", "--out", str(layout.out),
                            "--ship", str(layout.ship), "--recipe", recipe_name, "--system", system.name,
-                           "--threads", str(threads)] + (["--git-commit"] if commit else [])
+                           "--threads", str(threads), "--device", device] + (["--git-commit"] if commit else [])
                 running[system.name] = (subprocess.Popen(command, stdout=logfile, stderr=subprocess.STDOUT), logfile)
                 bars[system.name] = tqdm(total=1, desc=system.name, position=len(bars), file=sys.stderr,
                                          dynamic_ncols=True, leave=True)
@@ -680,6 +696,9 @@ def add_parser(sub) -> None:
                    help="print Table 2 (dev) and the Table 1 rows (test) from the kept evaluations and exit")
     t.add_argument("--system", help=argparse.SUPPRESS)  # one system in this process: what the programme runs
     t.add_argument("--threads", type=int, default=2, help=argparse.SUPPRESS)
+    t.add_argument("--device", default="cpu",
+                   help="where the systems train: cpu, cuda or cuda:N (supervised and DAggerFM epochs; rollouts and "
+                        "evaluation stay on the CPU); a run may change it when it resumes")
     t.set_defaults(func=cmd_table2)
 
 
@@ -691,12 +710,15 @@ def cmd_table2(args) -> int:
         print()
         print(table1_markdown(layout.ship))
         return 0
+    from gsmn.training.supervised import training_device
+
+    training_device(args.device)  # refused here, before any collection, where this machine has no such device
     if args.system:
         from gsmn.model.runtime import keep_freed_memory
 
         keep_freed_memory()
         run_system(BY_NAME[args.system], layout, recipe, args.threads, args.git_commit,
-                   log=lambda line: print(line, flush=True))
+                   log=lambda line: print(line, flush=True), device=args.device)
         return 0
     names = [n.strip() for n in args.systems.split(",") if n.strip()]
     unknown = [n for n in names if n not in BY_NAME]
@@ -707,4 +729,5 @@ def cmd_table2(args) -> int:
         return 0
     if args.parallel < 1:
         raise ValueError("--parallel must be at least 1")
-    return run_programme(layout, recipe, args.recipe, [BY_NAME[n] for n in names], args.parallel, args.git_commit)
+    return run_programme(layout, recipe, args.recipe, [BY_NAME[n] for n in names], args.parallel, args.git_commit,
+                         device=args.device)
