@@ -27,10 +27,12 @@ so the tables need nothing else.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -206,6 +208,20 @@ def _stage_order(stage: dict | None) -> tuple[int, int]:
     return (0 if stage.get("stage") == "supervised" else 1, int(stage.get("epoch", 0)))
 
 
+@contextlib.contextmanager
+def ship_lock(ship: Path):
+    """Held while a stage copy is compared and replaced (`keep_latest`, a running system's `keep`), so that two
+    writers never interleave: a lock on the folder of the stage copies itself (no lock file), which the kernel lets
+    go when its holder dies."""
+    ship.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(ship.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
 def _trained_order(stage: dict | None) -> tuple[int, int]:
     """How far a stage copy's training is, evaluated or not (a longer recipe trains on past an evaluated copy)."""
     return _stage_order({k: v for k, v in stage.items() if k != "evaluated"} if stage else None)
@@ -218,17 +234,18 @@ def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log
     kept = []
     for system in systems:
         latest, ship = layout.latest(system), layout.shipped(system)
-        new, old = read_stage(latest), read_stage(ship)
-        if new is None or _stage_order(new) <= _stage_order(old):
-            log(f"{system.name}: its stage copy is up to date" if new is not None else
-                f"{system.name}: no finished epoch in {latest}")
-            continue
-        tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(latest, tmp)
-        if (ship / "evaluation.json").is_file():
-            shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
-        _swap(tmp, ship)
+        with ship_lock(ship):
+            new, old = read_stage(latest), read_stage(ship)
+            if new is None or _stage_order(new) <= _stage_order(old):
+                log(f"{system.name}: its stage copy is up to date" if new is not None else
+                    f"{system.name}: no finished epoch in {latest}")
+                continue
+            tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(latest, tmp)
+            if (ship / "evaluation.json").is_file():
+                shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
+            _swap(tmp, ship)
         what = "epoch" if new.get("stage") == "supervised" else "iteration"
         where = f"{'supervised' if new.get('stage') == 'supervised' else 'dagger'} {what} {new['epoch']} of " \
                 f"{new['epochs']}"
@@ -368,7 +385,21 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
                log=print, on_progress=None, stop_after=None, device: str = "cpu") -> dict | None:
     """Train and evaluate one system, resuming from its run folders or its stage copy; returns its evaluation, or
     None when `stop_after(stage, state)` ("supervised" or "dagger", the run's TrainState after a saved epoch) ended
-    it early (the stage copy made by then is kept)."""
+    it early (the stage copy made by then is kept).
+
+    A stage copy further on than this run (trained on another machine and shipped with `--keep-latest` meanwhile)
+    is never replaced by this run's older one: the run stops at that epoch's end and goes on from the copy."""
+    while True:
+        superseded: list[str] = []
+        result = _run_system_once(system, layout, recipe, threads, commit, log, on_progress, stop_after, device,
+                                  superseded)
+        if not superseded:
+            return result
+        log(f"{system.name}: going on from the further stage copy in {layout.shipped(system)}")
+
+
+def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: int, commit: bool, log, on_progress,
+                     stop_after, device: str, superseded: list[str]) -> dict | None:
     from gsmn.evaluation import write_json
     from gsmn.training.dagger import train_dagger
     from gsmn.training.store import EpisodeStore
@@ -385,14 +416,15 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
         stage = {"system": system.name, "label": system.label, "stage": name, "epoch": epoch, "epochs": total,
                  "recipe": recipe.to_dict()}
         publish(run_root, layout.latest(system), {**stage, "evaluated": False})
-        if not to_ship:
-            return
-        shipped = read_stage(ship)
-        if _trained_order(shipped) > _trained_order(stage):  # e.g. shipped from another machine while this trained
-            log(f"{system.name}: not replacing {ship}, which holds a further stage ({describe_stage(shipped, ship)}); "
-                "start the programme again to go on from there")
-            return
-        publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()})
+        with ship_lock(ship):
+            shipped = read_stage(ship)
+            if _trained_order(shipped) > _trained_order(stage):  # shipped from another machine while this trained
+                log(f"{system.name}: {ship} holds a further stage ({describe_stage(shipped, ship)}): not replaced")
+                superseded.append(name)
+                return
+            if not to_ship:
+                return
+            publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()})
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
         log(f"{system.name}: kept {where} in {ship}")
         if commit:
@@ -410,8 +442,8 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
 
         train_supervised(sup_run, system.kind, sup_config, EpisodeStore(layout.data / "expert_train"),
                          EpisodeStore(layout.data / "expert_dev"), log=log, on_progress=on_progress,
-                         on_epoch=on_epoch, stop_after=_at_epoch_end(stop_after, "supervised"))
-        if _state_epoch(sup_run) < recipe.epochs:
+                         on_epoch=on_epoch, stop_after=_at_epoch_end(stop_after, "supervised", superseded))
+        if superseded or _state_epoch(sup_run) < recipe.epochs:
             return None
 
     # 2. DAggerFM
@@ -430,8 +462,9 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
 
     train_dagger(dagger_run, init, dagger_config, EpisodeStore(layout.data / "expert_seed"),
                  EpisodeStore(layout.data / "expert_dev"), env_ids=environments(recipe)["fresh"], log=log,
-                 on_progress=on_progress, on_iteration=on_iteration, stop_after=_at_epoch_end(stop_after, "dagger"))
-    if _state_epoch(dagger_run) < recipe.iterations:
+                 on_progress=on_progress, on_iteration=on_iteration,
+                 stop_after=_at_epoch_end(stop_after, "dagger", superseded))
+    if superseded or _state_epoch(dagger_run) < recipe.iterations:
         return None
 
     # 3. evaluation on dev
@@ -458,11 +491,11 @@ def run_system(system: System, layout: Layout, recipe: Recipe, threads: int = 2,
     return json.loads(evaluation.read_text())
 
 
-def _at_epoch_end(stop_after, stage: str):
-    """The training loops' `stop_after` (asked after every saved state), asked of `stop_after` at epoch ends only."""
-    if stop_after is None:
-        return None
-    return lambda state: state.batch == 0 and stop_after(stage, state)
+def _at_epoch_end(stop_after, stage: str, superseded: list[str]):
+    """The training loops' `stop_after` (asked after every saved state): at an epoch's end, once the stage copy was
+    found further on (`superseded`) or when `stop_after(stage, state)` says so."""
+    return lambda state: state.batch == 0 and (bool(superseded) or (stop_after is not None and
+                                                                   stop_after(stage, state)))
 
 
 def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print,
@@ -510,7 +543,7 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
     per running system; training on `device`. Returns a shell status."""
     from tqdm import tqdm
 
-    cores = os.cpu_count() or 2
+    cores = len(os.sched_getaffinity(0))
     # the DAggerFM seed data is collected by each system when it reaches DAggerFM (`collect_seed`)
     collect_data(layout, recipe, tuple(n for n in data_needed(layout, recipe, systems) if n != "seed"),
                  workers=cores, log=log)
@@ -685,7 +718,8 @@ def add_parser(sub) -> None:
     t.add_argument("--systems", default=",".join(s.name for s in SYSTEMS),
                    help="which systems, in order (default: all: %(default)s)")
     t.add_argument("--parallel", type=int, default=2,
-                   help="systems trained side by side, one thread each (1: one at a time with two threads)")
+                   help="systems trained side by side, the cores shared out among them (on two cores: one thread "
+                        "each; 1: one at a time with both)")
     t.add_argument("--recipe", choices=sorted(RECIPES), default="paper", help="the budget (tiny: seconds, for tests)")
     t.add_argument("--git-commit", action="store_true",
                    help="commit each system's stage copy as soon as it is written (so a new machine resumes it)")
@@ -702,6 +736,18 @@ def add_parser(sub) -> None:
     t.set_defaults(func=cmd_table2)
 
 
+def check_device(device: str) -> None:
+    """`--device` as `train.device` takes it, and present on this machine."""
+    from gsmn.training.supervised import training_device
+
+    if re.fullmatch(r"cpu|cuda(:\d+)?", device) is None:
+        raise ValueError(f"--device {device!r}: give cpu, cuda or cuda:N")
+    try:
+        training_device(device)
+    except ValueError as e:
+        raise ValueError(str(e).replace("--train.device", "--device")) from None
+
+
 def cmd_table2(args) -> int:
     layout = Layout(Path(args.out), Path(args.ship))
     recipe = RECIPES[args.recipe]
@@ -710,10 +756,8 @@ def cmd_table2(args) -> int:
         print()
         print(table1_markdown(layout.ship))
         return 0
-    from gsmn.training.supervised import training_device
-
-    training_device(args.device)  # refused here, before any collection, where this machine has no such device
     if args.system:
+        check_device(args.device)
         from gsmn.model.runtime import keep_freed_memory
 
         keep_freed_memory()
@@ -729,5 +773,6 @@ def cmd_table2(args) -> int:
         return 0
     if args.parallel < 1:
         raise ValueError("--parallel must be at least 1")
+    check_device(args.device)  # before any collection, where this machine has no such device
     return run_programme(layout, recipe, args.recipe, [BY_NAME[n] for n in names], args.parallel, args.git_commit,
                          device=args.device)
