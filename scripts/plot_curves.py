@@ -4,7 +4,12 @@
     .venv/bin/python scripts/plot_curves.py runs/gsmn_sup runs/gsmn_sup_b1 --label GSMN --out docs/accuracy_curves.png
 
 Each argument group is one panel: the run folders listed before a `--label` are read in order and their epochs
-concatenated (a run continued from another's checkpoint in a new folder counts on from where it left off).
+concatenated (a run continued from another's checkpoint in a new folder counts on from where it left off). A
+`.jsonl` file is read as a run's log itself. `--columns N` lays the panels out N to a row. Figure 4 of the Table 2
+programme, from the stage copies (a DAggerFM copy keeps its supervised log as `run/supervised_log.jsonl`):
+
+    python scripts/plot_curves.py --columns 3 --out docs/accuracy_curves_table2.png \
+        checkpoints/table2/gsmn/run/supervised_log.jsonl --label GSMN ...
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ def read_runs(folders: list[Path]) -> tuple[list[dict], str]:
     is a DAggerFM iteration (`gsmn train dagger`), else 'Epoch'."""
     records, logged, dagger = [], 0, True
     for folder in folders:
-        for line in (folder / "log.jsonl").read_text().splitlines():
+        log = folder if folder.suffix == ".jsonl" else folder / "log.jsonl"
+        for line in log.read_text().splitlines():
             if line.strip():
                 record = json.loads(line)
                 logged += 1
@@ -37,6 +43,7 @@ def read_runs(folders: list[Path]) -> tuple[list[dict], str]:
 def parse_panels(argv: list[str]) -> tuple[list[tuple[str, list[Path]]], Path]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/accuracy_curves.png"))
+    parser.add_argument("--columns", type=int, default=0, help="panels to a row (default: all in one row)")
     args, rest = parser.parse_known_args(argv)
     panels, folders = [], []
     it = iter(rest)
@@ -50,7 +57,7 @@ def parse_panels(argv: list[str]) -> tuple[list[tuple[str, list[Path]]], Path]:
         panels.append(("", folders))
     if not panels:
         parser.error("name at least one run folder")
-    return panels, args.out
+    return panels, args.out, args.columns
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,9 +66,14 @@ def main(argv: list[str] | None = None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels, out = parse_panels(argv)
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.6), squeeze=False, sharey=True)
-    for ax, (label, folders) in zip(axes[0], panels, strict=True):
+    panels, out, columns = parse_panels(argv)
+    columns = min(columns or len(panels), len(panels))
+    rows = -(-len(panels) // columns)
+    fig, grid = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.6 * rows), squeeze=False, sharey=True)
+    axes = [list(grid.flat)]
+    for ax in axes[0][len(panels):]:
+        ax.set_visible(False)
+    for ax, (label, folders) in zip(axes[0], panels, strict=False):
         records, unit = read_runs(folders)
         epochs = list(range(1, len(records) + 1))
         for key, name, colour in CURVES:
@@ -72,12 +84,13 @@ def main(argv: list[str] | None = None) -> None:
                 label="action loss (dev)")
         ax.set(title=label, xlabel=unit, ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
         ax.grid(axis="y", ls="--", alpha=0.6)
-    axes[0][0].set_ylabel("Dev accuracy")
+    for row in grid:
+        row[0].set_ylabel("Dev accuracy")
     handles = {}  # every curve drawn in any panel (a run without J_plan has no goal curve), once each
     for ax in axes[0]:
         for handle, name in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(name, handle)
-    axes[0][-1].legend(handles.values(), handles.keys(), loc="lower right", fontsize=8)
+    axes[0][len(panels) - 1].legend(handles.values(), handles.keys(), loc="lower right", fontsize=8)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

@@ -132,8 +132,12 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     tracked = sorted(_git(repo, "ls-files", "checkpoints").split())
     assert tracked == sorted(f"checkpoints/table2/gsmn/{name}" for name in (
         "config.json", "meta.json", "optimizer.pt", "vocabulary.json", "weights.safetensors", "stage.json",
-        "run/config.json", "run/log.jsonl", "run/state.json"))
+        "run/config.json", "run/log.jsonl", "run/state.json", "run/supervised_log.jsonl"))
     assert _git(repo, "status", "--porcelain") == ""
+    # a DAggerFM copy keeps the supervised epochs' log (Figure 4's figures) beside its own
+    supervised_log = (layout.run(control, "supervised") / "log.jsonl").read_text()
+    assert [json.loads(line)["epoch"] for line in supervised_log.splitlines()] == [1, 2]
+    assert (ship / "run" / "supervised_log.jsonl").read_text() == supervised_log
 
     shutil.rmtree(layout.out)  # the machine is lost: runs/ and data/ are gone
     assert data_needed(layout, recipe, [control]) == ("dev",), "the restored run needs only its validation data"
@@ -145,6 +149,8 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2] and log[1]["refilled"] == 2
     assert not (layout.run(control, "supervised")).exists(), "the supervised stage is not redone"
+    assert (ship / "run" / "supervised_log.jsonl").read_text() == supervised_log  # carried on from the copy
+    assert (layout.latest(control) / "run" / "supervised_log.jsonl").read_text() == supervised_log
 
     # the compact evaluation: figures per episode, no trajectories; committed with the last stage
     assert result == json.loads((ship / "evaluation.json").read_text())

@@ -172,9 +172,13 @@ def _state_epoch(run_root: Path) -> int:
     return -1
 
 
-def publish(run_root: Path, ship: Path, stage: dict) -> None:
+SUPERVISED_LOG = "supervised_log.jsonl"  # in a DAggerFM stage copy's run/: the supervised run's log.jsonl
+
+
+def publish(run_root: Path, ship: Path, stage: dict, supervised_log: Path | None = None) -> None:
     """Replace the copy at `ship` with the run's checkpoint and its small state files (atomically: a kill leaves
-    the old copy or the new one)."""
+    the old copy or the new one); a DAggerFM copy keeps the supervised run's log beside its own (`SUPERVISED_LOG`),
+    so the per-epoch dev figures outlive the supervised run folder."""
     ship.parent.mkdir(parents=True, exist_ok=True)
     tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -183,6 +187,8 @@ def publish(run_root: Path, ship: Path, stage: dict) -> None:
     for name, source in (("config.json", run_root / "config.json"), ("log.jsonl", run_root / "log.jsonl"),
                          ("state.json", run_root / "state" / "state.json")):
         shutil.copy2(source, tmp / "run" / name)
+    if supervised_log is not None:
+        shutil.copy2(supervised_log, tmp / "run" / SUPERVISED_LOG)
     if (ship / "evaluation.json").is_file():
         shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
     (tmp / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
@@ -415,7 +421,12 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         last, to the stage copy."""
         stage = {"system": system.name, "label": system.label, "stage": name, "epoch": epoch, "epochs": total,
                  "recipe": recipe.to_dict()}
-        publish(run_root, layout.latest(system), {**stage, "evaluated": False})
+        supervised_log = None
+        if name == "dagger":  # from the supervised run, or the stage copy where that run is gone
+            supervised_log = next((path for path in (sup_run / "log.jsonl", ship / "run" / SUPERVISED_LOG,
+                                                     layout.latest(system) / "run" / SUPERVISED_LOG)
+                                   if path.is_file()), None)
+        publish(run_root, layout.latest(system), {**stage, "evaluated": False}, supervised_log)
         with ship_lock(ship):
             shipped = read_stage(ship)
             if _trained_order(shipped) > _trained_order(stage):  # shipped from another machine while this trained
@@ -424,7 +435,7 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
                 return
             if not to_ship:
                 return
-            publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()})
+            publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()}, supervised_log)
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
         log(f"{system.name}: kept {where} in {ship}")
         if commit:
