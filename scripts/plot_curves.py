@@ -70,10 +70,10 @@ def main(argv: list[str] | None = None) -> None:
     columns = min(columns or len(panels), len(panels))
     rows = -(-len(panels) // columns)
     fig, grid = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.6 * rows), squeeze=False, sharey=True)
-    axes = [list(grid.flat)]
-    for ax in axes[0][len(panels):]:
+    axes = list(grid.flat)[: len(panels)]
+    for ax in list(grid.flat)[len(panels):]:
         ax.set_visible(False)
-    for ax, (label, folders) in zip(axes[0], panels, strict=False):
+    for ax, (label, folders) in zip(axes, panels, strict=True):
         records, unit = read_runs(folders)
         epochs = list(range(1, len(records) + 1))
         for key, name, colour in CURVES:
@@ -87,10 +87,10 @@ def main(argv: list[str] | None = None) -> None:
     for row in grid:
         row[0].set_ylabel("Dev accuracy")
     handles = {}  # every curve drawn in any panel (a run without J_plan has no goal curve), once each
-    for ax in axes[0]:
+    for ax in axes:
         for handle, name in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(name, handle)
-    axes[0][len(panels) - 1].legend(handles.values(), handles.keys(), loc="lower right", fontsize=8)
+    axes[-1].legend(handles.values(), handles.keys(), loc="lower right", fontsize=8)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

@@ -71,7 +71,7 @@ def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anythi
     import torch
 
     out = tmp_path / "out"
-    for device, says in (("gpu", "--device 'gpu': give cpu, cuda or cuda:N"),
+    for device, says in (("gpu", "--device 'gpu': train.device must be 'cpu', 'cuda' or 'cuda:N'"),
                          ("cuda", None if torch.cuda.is_available() else "--device cuda: torch")):
         if says is None:
             continue

@@ -32,7 +32,6 @@ import dataclasses
 import fcntl
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -205,11 +204,12 @@ def _swap(tmp: Path, ship: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _stage_order(stage: dict | None) -> tuple[int, int]:
-    """How far a stage copy is: supervised before DAggerFM, then by epoch (iteration); evaluated is furthest."""
+def _stage_order(stage: dict | None, evaluated_last: bool = True) -> tuple[int, int]:
+    """How far a stage copy is: supervised before DAggerFM, then by epoch (iteration); evaluated is furthest (unless
+    not `evaluated_last`: how far its training is)."""
     if not stage:
         return (-1, -1)
-    if stage.get("evaluated"):
+    if evaluated_last and stage.get("evaluated"):
         return (2, 0)
     return (0 if stage.get("stage") == "supervised" else 1, int(stage.get("epoch", 0)))
 
@@ -226,11 +226,6 @@ def ship_lock(ship: Path):
         yield
     finally:
         os.close(fd)
-
-
-def _trained_order(stage: dict | None) -> tuple[int, int]:
-    """How far a stage copy's training is, evaluated or not (a longer recipe trains on past an evaluated copy)."""
-    return _stage_order({k: v for k, v in stage.items() if k != "evaluated"} if stage else None)
 
 
 def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log=print) -> list[str]:
@@ -429,7 +424,8 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         publish(run_root, layout.latest(system), {**stage, "evaluated": False}, supervised_log)
         with ship_lock(ship):
             shipped = read_stage(ship)
-            if _trained_order(shipped) > _trained_order(stage):  # shipped from another machine while this trained
+            # shipped from another machine while this trained (evaluated or not: a longer recipe trains on past it)
+            if _stage_order(shipped, evaluated_last=False) > _stage_order(stage, evaluated_last=False):
                 log(f"{system.name}: {ship} holds a further stage ({describe_stage(shipped, ship)}): not replaced")
                 superseded.append(name)
                 return
@@ -751,8 +747,10 @@ def check_device(device: str) -> None:
     """`--device` as `train.device` takes it, and present on this machine."""
     from gsmn.training.supervised import training_device
 
-    if re.fullmatch(r"cpu|cuda(:\d+)?", device) is None:
-        raise ValueError(f"--device {device!r}: give cpu, cuda or cuda:N")
+    try:
+        system_configs(SYSTEMS[0], RECIPES["tiny"], 1, device)  # train.device's own check of the name
+    except ValueError as e:
+        raise ValueError(f"--device {device!r}: {e}") from None
     try:
         training_device(device)
     except ValueError as e:
