@@ -13,7 +13,7 @@ from pathlib import Path
 
 from gsmn.config import LossConfig
 from gsmn.experiments import table2
-from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_data, data_needed, run_system
+from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_store, data_needed, run_system
 from gsmn.model.losses import objectives_for
 from gsmn.training.store import EpisodeStore
 
@@ -111,14 +111,18 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     control: System = SYSTEMS[0]
     ship = layout.shipped(control)
 
-    up_front = data_needed(layout, recipe, [control])
-    assert up_front == ("train", "dev", "seed")
-    collect_data(layout, recipe, up_front[:2], workers=1, log=lambda s: None)  # as the programme: not the seed data
+    assert data_needed(layout, recipe, [control]) == ("train", "dev", "seed")
     lines: list[str] = []
     stopped = run_system(control, layout, recipe, threads=1, commit=True, log=lines.append,
                          stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
     assert stopped is None
-    assert "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first" in lines
+    # the system collects each store when its next stage reads it: the seed data only on reaching DAggerFM
+    collecting = [line for line in lines if line.startswith("collecting")]
+    assert collecting == ["collecting the supervised data: 3 of 3 expert episodes to go, first ids first",
+                          "collecting the dev data: 2 of 2 expert episodes to go, first ids first",
+                          "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first"]
+    assert lines.index(collecting[2]) > lines.index("gsmn: kept supervised epoch 2 of 2 in " + str(ship))
+    assert not (layout.out / control.name / "collect.json").exists()  # the progress bars' file, gone when done
     assert len(EpisodeStore(layout.data / "expert_seed")) == 2
     with open(layout.data / "expert_seed.lock") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # let go: this raises while it is held
@@ -141,9 +145,11 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
 
     shutil.rmtree(layout.out)  # the machine is lost: runs/ and data/ are gone
     assert data_needed(layout, recipe, [control]) == ("dev",), "the restored run needs only its validation data"
-    collect_data(layout, recipe, ("dev",), workers=1, log=lambda s: None)
     lines.clear()
     result = run_system(control, layout, recipe, threads=1, commit=True, log=lines.append)
+    assert [line for line in lines if line.startswith("collecting")] == [
+        "collecting the dev data: 2 of 2 expert episodes to go, first ids first"]
+    assert not (layout.data / "expert_train").exists() and len(EpisodeStore(layout.data / "expert_seed")) == 0
     assert "gsmn: restoring DAggerFM iteration 1 from " + str(ship) in lines
     assert any("refilling it with 2 rollouts of the current mixture policy" in line for line in lines)
     log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
@@ -211,7 +217,8 @@ def test_a_running_system_goes_on_from_a_further_stage_copy_shipped_from_elsewhe
     here, elsewhere = Layout(tmp_path / "here", tmp_path / "ship"), Layout(tmp_path / "elsewhere", tmp_path / "ship")
     control: System = SYSTEMS[0]
     ship = here.shipped(control)
-    collect_data(here, recipe, ("train", "dev"), workers=1, log=lambda s: None)
+    for name in ("train", "dev"):
+        collect_store(here, recipe, name, log=lambda s: None)
     shutil.copytree(here.data, elsewhere.data)
     away: list[str] = []
 
@@ -238,9 +245,10 @@ def test_a_running_system_goes_on_from_a_further_stage_copy_shipped_from_elsewhe
     assert (ship / "run" / "log.jsonl").read_text() == (here.run(control, "supervised") / "log.jsonl").read_text()
 
 
-def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_path):
+def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_path, monkeypatch):
     """Two systems reaching DAggerFM together split the seed data: with the lock held by a live process,
-    `collect_seed` flies the ids from the last one; once that process is gone the lock is free again."""
+    `collect_store` flies the ids from the last one; once that process is gone the lock is free again. Meanwhile
+    the programme's progress bar reads how far the collection is."""
     layout = Layout(tmp_path / "runs", tmp_path / "ship")
     recipe = RECIPES["tiny"]
     lock = layout.data / "expert_seed.lock"
@@ -252,15 +260,26 @@ def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_
     try:
         assert holder.stdout.readline().strip() == "held"
         lines: list[str] = []
-        table2.collect_seed(layout, recipe, workers=1, log=lines.append)
+        progress = layout.out / SYSTEMS[0].name / "collect.json"
+        progress.parent.mkdir()
+        seen = []
+
+        def write_json(path, value):  # what the programme's bar shows once the file is written
+            real_write_json(path, value)
+            seen.append(table2.describe(layout, SYSTEMS[0], recipe))
+
+        real_write_json = table2._write_json
+        monkeypatch.setattr(table2, "_write_json", write_json)
+        table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append, progress=progress)
         assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
+        assert seen == [("collecting the DAggerFM seed data", 0, 2)] and not progress.exists()
         assert sorted(store.keys()) == [f"env_{e:06d}" for e in table2.environments(recipe)["seed"]]
     finally:
         holder.kill()
         holder.wait()
     lines.clear()
-    table2.collect_seed(layout, recipe, workers=1, log=lines.append)
+    table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append)
     assert lines == [], "nothing left to collect"
     store.path(store.keys()[0]).unlink()
-    table2.collect_seed(layout, recipe, workers=1, log=lines.append)  # its holder is gone: the lock is free
+    table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append)  # its holder is gone: the lock is free
     assert lines == ["collecting the DAggerFM seed data: 1 of 2 expert episodes to go, first ids first"]

@@ -319,55 +319,53 @@ class Layout:
         return self.out / system.name / "latest"
 
 
-def collect_data(layout: Layout, recipe: Recipe, which: tuple[str, ...], workers: int = 2, log=print) -> None:
-    """Expert episodes for the stores named in `which` ("train", "dev", "seed"); existing episodes are kept."""
-    from gsmn.training.collect import collect_expert
-    from gsmn.training.store import EpisodeStore
-
-    envs = environments(recipe)
-    config = preset(recipe.preset)
-    from tqdm import tqdm
-
-    for name in which:
-        store = EpisodeStore(layout.data / f"expert_{name}")
-        if len(store) < len(envs[name]):
-            log(f"collecting expert episodes: {name}, {len(envs[name]) - len(store)} of {len(envs[name])} to go")
-            with tqdm(total=len(envs[name]), initial=len(store), desc=f"expert {name}", unit="episode",
-                      file=sys.stderr, dynamic_ncols=True) as bar:
-                collect_expert(store, envs[name], config, workers=workers, on_episode=lambda *_: bar.update(1))
+STORES = {"train": "the supervised data", "dev": "the dev data", "seed": "the DAggerFM seed data"}
 
 
-def collect_seed(layout: Layout, recipe: Recipe, workers: int = 1, log=print) -> None:
-    """The DAggerFM seed store, collected by a system about to start DAggerFM rather than up front: only that step
-    reads it, and every start on a new machine would otherwise spend its collection again while supervised learning
-    is still to come. Two systems arriving together share the work: the one that holds the lock on `expert_seed.lock`
-    flies the ids from the first, the other from the last, a few at a time, each skipping what is already written,
-    so they meet in the middle (deterministic by environment id, so an episode flown twice is the same file)."""
+def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, log=print,
+                  progress: Path | None = None) -> None:
+    """The expert store `name` (`STORES`), collected by a system when its next stage reads it, not up front: a start
+    on a new machine during DAggerFM or evaluation then flies only the dev data, not the 600 supervised episodes that
+    systems still to come will read. Two systems arriving together share the work: the one that holds the lock on
+    `expert_<name>.lock` flies the ids from the first, the other from the last, a few at a time, each skipping what is
+    already written, so they meet in the middle (deterministic by environment id, so an episode flown twice is the
+    same file). `progress` gets {"store", "done", "total"} after every few episodes, for the programme's bars."""
     from gsmn.training.collect import collect_expert, episode_key
     from gsmn.training.store import EpisodeStore
 
-    ids = environments(recipe)["seed"]
-    store = EpisodeStore(layout.data / "expert_seed")
+    ids = environments(recipe)[name]
+    store = EpisodeStore(layout.data / f"expert_{name}")
     missing = [e for e in ids if episode_key(e) not in store]
     if not missing:
         return
     chunk = 4 * max(workers, 1)
     config = preset(recipe.preset)
-    with open(layout.data / "expert_seed.lock", "a") as lock:  # the kernel lets it go when its holder dies
+    with open(layout.data / f"expert_{name}.lock", "a") as lock:  # the kernel lets it go when its holder dies
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             forward = True
         except BlockingIOError:
             forward = False  # another system is collecting from the first id
-        log(f"collecting the DAggerFM seed data: {len(missing)} of {len(ids)} expert episodes to go, "
+        log(f"collecting {STORES[name]}: {len(missing)} of {len(ids)} expert episodes to go, "
             f"{'first' if forward else 'last'} ids first")
         order = missing if forward else missing[::-1]
         for k in range(0, len(order), chunk):
+            if progress is not None:
+                done = sum(episode_key(e) in store for e in ids)
+                _write_json(progress, {"store": name, "done": done, "total": len(ids)})
             collect_expert(store, order[k:k + chunk], config, workers=workers)
+    if progress is not None:
+        progress.unlink(missing_ok=True)
+
+
+def _write_json(path: Path, value: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value))
+    tmp.replace(path)
 
 
 def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
-    """The expert stores the remaining stages of `systems` read (the programme leaves "seed" to `collect_seed`)."""
+    """The expert stores the remaining stages of `systems` read."""
     needed = set()
     for system in systems:
         stage = read_stage(layout.shipped(system)) or {}
@@ -410,6 +408,13 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
     sup_config, dagger_config = system_configs(system, recipe, threads, device)
     sup_run, dagger_run = layout.run(system, "supervised"), layout.run(system, "dagger")
     stage = read_stage(ship) or {}
+    # the expert data its next stages read, where this machine lacks it (the seed data waits for DAggerFM)
+    progress = layout.out / system.name / "collect.json"
+    progress.parent.mkdir(parents=True, exist_ok=True)
+    progress.unlink(missing_ok=True)
+    for name in data_needed(layout, recipe, [system]):
+        if name != "seed":
+            collect_store(layout, recipe, name, workers=threads, log=log, progress=progress)
 
     def keep(run_root: Path, name: str, epoch: int, total: int, to_ship: bool) -> None:
         """Every finished epoch goes to OUT/<name>/latest (`keep_latest` ships it on demand); every few, and the
@@ -458,7 +463,7 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         log(f"{system.name}: restoring DAggerFM iteration {stage['epoch']} from {ship}")
         restore(ship, dagger_run)
     if _state_epoch(dagger_run) < 0:  # a new DAggerFM run starts its dataset from the seed data
-        collect_seed(layout, recipe, workers=threads, log=log)
+        collect_store(layout, recipe, "seed", workers=threads, log=log, progress=progress)
     # a resumed run reads its weights and Adam from its own state; `init` then only names the architecture, so the
     # stage copy serves when the supervised run folder is gone
     init = sup_run / "checkpoint" if (sup_run / "checkpoint" / "meta.json").is_file() else ship
@@ -544,16 +549,14 @@ PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabil
 
 # -- the programme ----------------------------------------------------------------------------------------------
 def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: list[System], parallel: int = 2,
-                  commit: bool = False, log=print, device: str = "cpu") -> int:
+                  commit: bool = False, device: str = "cpu") -> int:
     """Every system's pipeline, `parallel` at a time, the machine's cores shared out among them (on two cores: one
     thread each side by side, else two), each in its own process logging to OUT/<name>/log.txt, with a progress bar
     per running system; training on `device`. Returns a shell status."""
     from tqdm import tqdm
 
     cores = len(os.sched_getaffinity(0))
-    # the DAggerFM seed data is collected by each system when it reaches DAggerFM (`collect_seed`)
-    collect_data(layout, recipe, tuple(n for n in data_needed(layout, recipe, systems) if n != "seed"),
-                 workers=cores, log=log)
+    # each system collects the expert data it reads when it needs it (`collect_store`), on its share of the cores
     threads = max(1, cores // parallel)
     pending, running, failed = list(systems), {}, []
     bars: dict[str, Any] = {}
@@ -608,6 +611,11 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
 def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, int]:
     """Where a system's pipeline stands, for its progress bar: (what, done, total)."""
     folder = layout.out / system.name
+    try:
+        c = json.loads((folder / "collect.json").read_text())
+        return f"collecting {STORES[c['store']]}", int(c["done"]), int(c["total"])
+    except (OSError, ValueError, KeyError):
+        pass
     partial = folder / "evaluation_full.json.partial.jsonl"
     if (layout.shipped(system) / "evaluation.json").is_file():
         if system.name not in TABLE1 or (layout.shipped(system) / "table1.json").is_file():
