@@ -180,6 +180,28 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
 
 
+def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised_one(tmp_path):
+    """Between the end of supervised learning and DAggerFM's first stage copy the shipped stage is the last epoch's:
+    a new machine restores it, collects the dev and seed data but not the supervised data, and starts DAggerFM."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    recipe = dataclasses.replace(RECIPES["tiny"], epochs=1, publish_every_iterations=2)
+    control: System = SYSTEMS[0]
+    run_system(control, layout, recipe, threads=1, log=lambda s: None,
+               stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
+    assert table2.read_stage(layout.shipped(control))["stage"] == "supervised", "no DAggerFM copy yet"
+    shutil.rmtree(layout.out)
+    assert data_needed(layout, recipe, [control]) == ("dev", "seed")
+    lines: list[str] = []
+    run_system(control, layout, recipe, threads=1, log=lines.append,
+               stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
+    assert [line for line in lines if line.startswith("collecting")] == [
+        "collecting the dev data: 2 of 2 expert episodes to go, first ids first",
+        "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first"]
+    assert f"{control.name}: restoring supervised epoch 1 from {layout.shipped(control)}" in lines
+    assert not (layout.data / "expert_train").exists()
+    assert table2._state_epoch(layout.run(control, "dagger")) == 1
+
+
 def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
     layout = Layout(tmp_path / "runs", tmp_path / "ship")
     control = SYSTEMS[0]
@@ -272,7 +294,7 @@ def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_
         monkeypatch.setattr(table2, "_write_json", write_json)
         table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append, progress=progress)
         assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
-        assert seen == [("collecting the DAggerFM seed data", 0, 2)] and not progress.exists()
+        assert seen == [("collecting the DAggerFM seed data", n, 2) for n in (0, 1, 2)] and not progress.exists()
         assert sorted(store.keys()) == [f"env_{e:06d}" for e in table2.environments(recipe)["seed"]]
     finally:
         holder.kill()

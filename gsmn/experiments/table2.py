@@ -327,9 +327,10 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
     """The expert store `name` (`STORES`), collected by a system when its next stage reads it, not up front: a start
     on a new machine during DAggerFM or evaluation then flies only the dev data, not the 600 supervised episodes that
     systems still to come will read. Two systems arriving together share the work: the one that holds the lock on
-    `expert_<name>.lock` flies the ids from the first, the other from the last, a few at a time, each skipping what is
-    already written, so they meet in the middle (deterministic by environment id, so an episode flown twice is the
-    same file). `progress` gets {"store", "done", "total"} after every few episodes, for the programme's bars."""
+    `expert_<name>.lock` flies the ids from the first, the other from the last, each skipping an episode already
+    written when it comes to it, so they meet in the middle (deterministic by environment id, so an episode flown
+    twice is the same file; a third collector would go the second's way and duplicate its work). `progress` gets
+    {"store", "done", "total"} as episodes are written, for the programme's bars, and is removed at the end."""
     from gsmn.training.collect import collect_expert, episode_key
     from gsmn.training.store import EpisodeStore
 
@@ -338,8 +339,13 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
     missing = [e for e in ids if episode_key(e) not in store]
     if not missing:
         return
-    chunk = 4 * max(workers, 1)
     config = preset(recipe.preset)
+
+    def on_episode(*_) -> None:
+        if progress is not None:
+            _write_json(progress, {"store": name, "done": sum(episode_key(e) in store for e in ids),
+                                   "total": len(ids)})
+
     with open(layout.data / f"expert_{name}.lock", "a") as lock:  # the kernel lets it go when its holder dies
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -348,14 +354,13 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
             forward = False  # another system is collecting from the first id
         log(f"collecting {STORES[name]}: {len(missing)} of {len(ids)} expert episodes to go, "
             f"{'first' if forward else 'last'} ids first")
-        order = missing if forward else missing[::-1]
-        for k in range(0, len(order), chunk):
+        try:
+            on_episode()
+            collect_expert(store, missing if forward else missing[::-1], config, workers=workers,
+                           on_episode=on_episode)
+        finally:
             if progress is not None:
-                done = sum(episode_key(e) in store for e in ids)
-                _write_json(progress, {"store": name, "done": done, "total": len(ids)})
-            collect_expert(store, order[k:k + chunk], config, workers=workers)
-    if progress is not None:
-        progress.unlink(missing_ok=True)
+                progress.unlink(missing_ok=True)
 
 
 def _write_json(path: Path, value: dict) -> None:
@@ -371,8 +376,11 @@ def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[
         stage = read_stage(layout.shipped(system)) or {}
         if stage.get("evaluated"):
             continue
-        needed.add("dev")
-        in_dagger = stage.get("stage") == "dagger" or _state_epoch(layout.run(system, "dagger")) >= 0
+        dagger_epoch = max(stage.get("epoch", -1) if stage.get("stage") == "dagger" else -1,
+                           _state_epoch(layout.run(system, "dagger")))
+        if dagger_epoch < recipe.iterations:  # the evaluation flies environments; it reads no expert data
+            needed.add("dev")
+        in_dagger = dagger_epoch >= 0
         if not in_dagger:
             needed.add("seed")
             if stage.get("stage") != "supervised" or stage.get("epoch", 0) < recipe.epochs:
@@ -447,7 +455,8 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         log(f"{system.name}: restoring supervised epoch {stage['epoch']} from {ship}")
         restore(ship, sup_run)
     in_dagger = stage.get("stage") == "dagger" or _state_epoch(dagger_run) >= 0
-    if not in_dagger:
+    # a finished supervised run (restored from its last stage copy, DAggerFM's run lost) reads no train data
+    if not in_dagger and _state_epoch(sup_run) < recipe.epochs:
         def on_epoch(state) -> None:
             keep(sup_run, "supervised", state.epoch, recipe.epochs,
                  state.epoch % recipe.publish_every_epochs == 0 or state.epoch == recipe.epochs)
@@ -566,6 +575,7 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
             while pending and len(running) < parallel and not gate_closed:
                 system = pending.pop(0)
                 (layout.out / system.name).mkdir(parents=True, exist_ok=True)
+                (layout.out / system.name / "collect.json").unlink(missing_ok=True)  # a killed collection's
                 logfile = (layout.out / system.name / "log.txt").open("a")
                 command = [sys.executable, "-m", "gsmn.cli", "experiment", "table2", "--out", str(layout.out),
                            "--ship", str(layout.ship), "--recipe", recipe_name, "--system", system.name,

@@ -105,6 +105,10 @@ def _init_worker(config: RunConfig, root: str) -> None:
 
 
 def _collect_one(env_id: int) -> tuple[int, int]:
+    """Fly and write one expert episode; (env_id, frames), or frames 0 where another collector of the same store
+    wrote it since the list was made."""
+    if episode_key(env_id) in _worker["store"]:
+        return env_id, 0
     config: RunConfig = _worker["config"]
     sample = record_episode(_worker["env"], _worker["policy"], task_for_env(env_id, config), config.task.horizon)
     _worker["store"].write(episode_key(env_id), sample, meta={"env_id": env_id, "source": "expert"})
