@@ -228,7 +228,8 @@ class ModelConfig:
     pose_noise_std: float = _f(0.0, "std of Gaussian noise on the position (x, y, z) the model sees, fresh every "
                                     "forward (m); the paper's noise experiment uses 0.5")
     pose_noise_yaw_deg: float = _f(0.0, "std of Gaussian noise on the yaw the model sees (deg)")
-    channels_last: bool = _f(True, "run the ResNet in channels-last memory format (faster on CPU; same maths)")
+    channels_last: bool = _f(True, "run the ResNet in channels-last memory format (faster on CPU; same maths), but "
+                                   "for training on the CPU, where NCHW is faster")
     inference_bf16: bool = _f(False, "outside training, run the ResNet in bfloat16 autocast (faster on CPUs with "
                                      "AMX; features change by about 2 %, see docs/model.md)")
 

@@ -4,8 +4,10 @@ A 3x3 stride-2 convolution (3 -> C_f), six residual blocks [strided s2, plain, s
 plain] and a final InstanceNorm: 13 convolutions, all C_f = 32 channels, downscale 8, so a 256x144 image gives
 an 18x32 feature map. Each image is first standardised by its own mean and standard deviation (one scalar each).
 
-Speed (docs/model.md): the network runs in channels-last memory format when `channels_last` is set; a uint8
-(N, H, W, 3) image batch is already channels-last once permuted, so no copy is made on the way in. With
+Speed (docs/model.md): the network runs in channels-last memory format when `channels_last` is set, except while
+it trains on the CPU (train mode there keeps the weights and activations in NCHW: PyTorch's channels-last GroupNorm
+backward is several times slower than its NCHW one at training scale); a uint8 (N, H, W, 3) image batch is already
+channels-last once permuted, so no copy is made on the way in. The same maths in either format. With
 `inference_bf16`, eval-mode forwards run in bfloat16 autocast (training always runs in float32); the features
 come out as float32 either way.
 """
@@ -47,11 +49,22 @@ class ResNet13(nn.Module):
         )
         self.channels_last = channels_last
         self.inference_bf16 = inference_bf16
-        if channels_last:
-            self.to(memory_format=torch.channels_last)
+        self.train(self.training)
+
+    def memory_format(self) -> torch.memory_format:
+        """Channels-last where `channels_last` is set, but for training on the CPU."""
+        cpu = next(self.parameters()).device.type == "cpu"
+        return torch.channels_last if self.channels_last and not (self.training and cpu) else torch.contiguous_format
+
+    def train(self, mode: bool = True) -> ResNet13:
+        """Also puts the weights in the memory format of the mode (a copy where it changes; the same Parameters, so
+        an optimizer holding them goes on). Never as inference tensors, even when called under inference_mode."""
+        super().train(mode)
+        with torch.inference_mode(False):
+            return self.to(memory_format=self.memory_format())
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = images.contiguous(memory_format=torch.channels_last if self.channels_last else torch.contiguous_format)
+        x = images.contiguous(memory_format=self.memory_format())
         if self.inference_bf16 and not self.training:
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
                 return instance_norm(self.blocks(self.conv(x))).float().contiguous()
