@@ -642,3 +642,34 @@ def test_a_few_steps_on_one_batch_reduce_the_loss(batch, kind):
     with torch.no_grad():
         after = losses_of(model, batch, LossConfig()).total.item()
     assert after < 0.8 * before, (before, after)
+
+
+def test_the_resnet_trains_in_nchw_on_the_cpu_and_infers_channels_last():
+    """Its weights move to the mode's memory format (the same Parameters, so an optimizer goes on; never inference
+    tensors, even for eval() under inference_mode); both formats compute the same features up to rounding."""
+    from gsmn.model.perception import ResNet13, standardise
+
+    torch.manual_seed(0)
+    net = ResNet13()
+    params = list(net.parameters())
+    optimizer = torch.optim.Adam(params, lr=1e-3)
+    images = standardise(torch.randint(0, 256, (2, 144, 256, 3), dtype=torch.uint8))
+    assert net.conv.weight.is_contiguous() and net.memory_format() == torch.contiguous_format
+    trained = net(images)
+    trained.square().mean().backward()
+    optimizer.step()
+    with torch.inference_mode():
+        net.eval()
+        inferred = net(images)
+    weight = net.blocks[0].conv1.weight
+    assert weight.is_contiguous(memory_format=torch.channels_last) and not weight.is_inference()
+    assert list(net.parameters()) == params and all(p is q for p, q in zip(net.parameters(), params, strict=True))
+    net.train()
+    assert weight.is_contiguous() and not weight.is_contiguous(memory_format=torch.channels_last)
+    again = net(images)
+    torch.testing.assert_close(again.detach(), inferred, atol=1e-3, rtol=1e-3)
+    again.square().mean().backward()  # the optimizer still holds the parameters the model uses
+    before = weight.detach().clone()
+    optimizer.step()
+    assert not torch.equal(before, weight.detach())
+    assert not ResNet13(channels_last=False).eval().conv.weight.is_contiguous(memory_format=torch.channels_last)

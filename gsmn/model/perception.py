@@ -58,10 +58,14 @@ class ResNet13(nn.Module):
 
     def train(self, mode: bool = True) -> ResNet13:
         """Also puts the weights in the memory format of the mode (a copy where it changes; the same Parameters, so
-        an optimizer holding them goes on). Never as inference tensors, even when called under inference_mode."""
+        an optimizer holding them goes on). Never as inference tensors, even when called under inference_mode. A
+        model moved to another device keeps its format until the next train() or eval()."""
         super().train(mode)
-        with torch.inference_mode(False):
-            return self.to(memory_format=self.memory_format())
+        memory_format = self.memory_format()
+        if not self.conv.weight.is_contiguous(memory_format=memory_format):  # every training step calls train()
+            with torch.inference_mode(False):
+                self.to(memory_format=memory_format)
+        return self
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = images.contiguous(memory_format=self.memory_format())
