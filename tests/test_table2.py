@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from gsmn import evaluation
 from gsmn.config import LossConfig
 from gsmn.experiments import table2
 from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_store, data_needed, run_system
@@ -290,8 +291,8 @@ def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_
             real_write_json(path, value)
             seen.append(table2.describe(layout, SYSTEMS[0], recipe))
 
-        real_write_json = table2._write_json
-        monkeypatch.setattr(table2, "_write_json", write_json)
+        real_write_json = evaluation.write_json
+        monkeypatch.setattr(evaluation, "write_json", write_json)
         table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append, progress=progress)
         assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
         assert seen == [("collecting the DAggerFM seed data", n, 2) for n in (0, 1, 2)] and not progress.exists()

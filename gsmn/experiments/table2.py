@@ -331,6 +331,7 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
     written when it comes to it, so they meet in the middle (deterministic by environment id, so an episode flown
     twice is the same file; a third collector would go the second's way and duplicate its work). `progress` gets
     {"store", "done", "total"} as episodes are written, for the programme's bars, and is removed at the end."""
+    from gsmn.evaluation import write_json
     from gsmn.training.collect import collect_expert, episode_key
     from gsmn.training.store import EpisodeStore
 
@@ -343,8 +344,7 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
 
     def on_episode(*_) -> None:
         if progress is not None:
-            _write_json(progress, {"store": name, "done": sum(episode_key(e) in store for e in ids),
-                                   "total": len(ids)})
+            write_json(progress, {"store": name, "done": len(store), "total": len(ids)})  # the store holds only ids
 
     with open(layout.data / f"expert_{name}.lock", "a") as lock:  # the kernel lets it go when its holder dies
         try:
@@ -361,12 +361,6 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
         finally:
             if progress is not None:
                 progress.unlink(missing_ok=True)
-
-
-def _write_json(path: Path, value: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value))
-    tmp.replace(path)
 
 
 def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[str, ...]:
@@ -575,7 +569,6 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
             while pending and len(running) < parallel and not gate_closed:
                 system = pending.pop(0)
                 (layout.out / system.name).mkdir(parents=True, exist_ok=True)
-                (layout.out / system.name / "collect.json").unlink(missing_ok=True)  # a killed collection's
                 logfile = (layout.out / system.name / "log.txt").open("a")
                 command = [sys.executable, "-m", "gsmn.cli", "experiment", "table2", "--out", str(layout.out),
                            "--ship", str(layout.ship), "--recipe", recipe_name, "--system", system.name,
