@@ -673,3 +673,28 @@ def test_the_resnet_trains_in_nchw_on_the_cpu_and_infers_channels_last():
     optimizer.step()
     assert not torch.equal(before, weight.detach())
     assert not ResNet13(channels_last=False).eval().conv.weight.is_contiguous(memory_format=torch.channels_last)
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_the_pooled_skip_is_avg_pool2d_with_or_without_gradients(stride, channels_last):
+    """The residual blocks' 3x3 AvgPool skip (a depthwise convolution where autograd tracks it, avg_pool2d where
+    not) gives AvgPool2d(3, stride, padding 1)'s values and input gradient, odd sizes and channels-last included."""
+    from gsmn.model.blocks import AvgPool3x3
+
+    torch.manual_seed(0)
+    x = torch.randn(3, 5, 9, 12)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    reference = torch.nn.AvgPool2d(3, stride=stride, padding=1)
+    pool = AvgPool3x3(stride)
+    with torch.no_grad():
+        torch.testing.assert_close(pool(x), reference(x), rtol=0, atol=0)  # the same kernel when no gradient
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    out, expected = pool(a), reference(b)
+    assert out.grad_fn is not None and "Convolution" in type(out.grad_fn).__name__  # the faster path trains
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-6)
+    grad = torch.randn_like(expected)
+    out.backward(grad)
+    expected.backward(grad)
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-5, atol=1e-6)

@@ -8,6 +8,11 @@ InstanceNorm is computed as GroupNorm with one group per channel: the same norma
 GroupNorm kernel is several times faster than its InstanceNorm (a reshaped BatchNorm) on CPU. Its
 channels-last kernel is slow on small maps (about 100 us vs 10 us at 32x18x32, batch 1), so small
 channels-last maps are copied to NCHW first (measurements in docs/model.md).
+
+The AvgPool skip (3x3, zero padding counted, so always a ninth of a 3x3 sum) is computed, where autograd tracks
+it, as a depthwise convolution with fixed weights 1/9: the same maths, and on CPU its forward and backward take
+about a fifth of PyTorch's avg_pool2d's at training scale. Without gradients (inference, batch 1, channels-last)
+avg_pool2d is the faster one and stays (docs/model.md, "Speed").
 """
 
 from __future__ import annotations
@@ -29,6 +34,24 @@ def instance_norm(x: torch.Tensor) -> torch.Tensor:
     return F.group_norm(x, x.shape[1], eps=EPS)
 
 
+class AvgPool3x3(nn.Module):
+    """AvgPool2d(3, stride, padding=1), the padding counted; as a depthwise convolution with weights 1/9 where
+    autograd tracks it (faster to train on CPU), as avg_pool2d where not."""
+
+    def __init__(self, stride: int):
+        super().__init__()
+        self.stride = stride
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not (x.requires_grad and torch.is_grad_enabled()):
+            return F.avg_pool2d(x, 3, self.stride, 1)
+        weight = torch.full((x.shape[1], 1, 3, 3), 1 / 9, dtype=x.dtype, device=x.device)
+        return F.conv2d(x, weight, stride=self.stride, padding=1, groups=x.shape[1])
+
+    def extra_repr(self) -> str:
+        return f"stride={self.stride}"
+
+
 def conv3x3(channels_in: int, channels_out: int, stride: int, slope: float) -> nn.Conv2d:
     conv = nn.Conv2d(channels_in, channels_out, 3, stride=stride, padding=1)
     nn.init.kaiming_normal_(conv.weight, a=slope, nonlinearity="leaky_relu")
@@ -46,7 +69,7 @@ class ResidualBlock(nn.Module):
         self.slope = slope
         # The original's "strided" blocks pool the skip path even at stride 1 (a 3x3 blur).
         pooled = stride > 1 if pooled_skip is None else pooled_skip
-        self.skip = nn.AvgPool2d(3, stride=stride, padding=1) if pooled else nn.Identity()
+        self.skip = AvgPool3x3(stride) if pooled else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         # In place on the convolutions' fresh outputs (autograd keeps LeakyReLU's output, which is all it needs).
