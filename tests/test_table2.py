@@ -176,7 +176,7 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
         in table2.table1_markdown(layout.ship)
     assert _git(repo, "status", "--porcelain") == ""
     table = table2.table_markdown(layout.ship)
-    assert "| GSMN | " in table and "| GSMN without J_ground | not yet |" in table
+    assert "| GSMN | " in table and "| GSMN without J_ground | not yet (not started) |" in table
     # a start after the end does nothing more
     assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
 
@@ -306,3 +306,20 @@ def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_
     store.path(store.keys()[0]).unlink()
     table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append)  # its holder is gone: the lock is free
     assert lines == ["collecting the DAggerFM seed data: 1 of 2 expert episodes to go, first ids first"]
+
+
+def test_a_row_not_yet_measured_says_where_its_system_stands(tmp_path):
+    """Table 2 and Table 1's rows printed mid-programme name each unfinished system's last kept stage."""
+    def stage(name: str, **fields) -> None:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "stage.json").write_text(json.dumps({"system": name, "evaluated": False, **fields}))
+
+    stage("gsmn", stage="dagger", epoch=7, epochs=15)
+    stage("no-plan", stage="dagger", epoch=15, epochs=15)
+    stage("no-ground", stage="supervised", epoch=8, epochs=16)
+    table, table1 = table2.table_markdown(tmp_path), table2.table1_markdown(tmp_path)
+    assert "| GSMN | not yet (DAggerFM iteration 7 of 15) |" in table
+    assert "| GSMN without J_plan | not yet (trained, not evaluated) |" in table
+    assert "| GSMN without J_ground | not yet (supervised epoch 8 of 16) |" in table
+    assert "| GSMN without J_lang | not yet (not started) |" in table
+    assert "| GSMN, Table 2's recipe | not yet (DAggerFM iteration 7 of 15) |" in table1

@@ -154,11 +154,19 @@ def describe_stage(stage: dict, ship: Path) -> str:
             return f"{label} (Table 2: {summary['success']:.1f} % on {summary['count']} dev)"
         except (OSError, ValueError, KeyError):
             pass
-    if stage.get("stage") == "dagger" and stage.get("epoch") == stage.get("epochs"):
+    if trained(stage):
         return f"{label} (Table 2, trained; not yet evaluated)"
-    what = "epoch" if stage.get("stage") == "supervised" else "iteration"
-    name = "supervised" if stage.get("stage") == "supervised" else "DAggerFM"
-    return f"{label} (Table 2, in training: {name} {what} {stage.get('epoch')} of {stage.get('epochs')})"
+    return f"{label} (Table 2, in training: {training_stage(stage)})"
+
+
+def trained(stage: dict) -> bool:
+    return stage.get("stage") == "dagger" and stage.get("epoch") == stage.get("epochs")
+
+
+def training_stage(stage: dict) -> str:
+    """"supervised epoch 8 of 16", "DAggerFM iteration 7 of 15"."""
+    name, what = ("supervised", "epoch") if stage.get("stage") == "supervised" else ("DAggerFM", "iteration")
+    return f"{name} {what} {stage.get('epoch')} of {stage.get('epochs')}"
 
 
 def _state_epoch(run_root: Path) -> int:
@@ -673,6 +681,14 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return 100 * (centre - half), 100 * (centre + half)
 
 
+def pending(ship: Path) -> str:
+    """A row not yet measured, with where its system stands: "not yet (DAggerFM iteration 7 of 15)"."""
+    stage = read_stage(ship)
+    if stage is None:
+        return "not yet (not started)"
+    return "not yet (trained, not evaluated)" if trained(stage) else f"not yet ({training_stage(stage)})"
+
+
 def table_markdown(ship: Path) -> str:
     """Table 2 from the kept evaluations: ours beside the paper's, each ablation's drop from the control with a
     paired sign test over the same environments, and the failures' attribution counts."""
@@ -688,7 +704,7 @@ def table_markdown(ship: Path) -> str:
         paper = " / ".join(f"{v:.2f}" for v in PAPER[system.name])
         result = found.get(system.name)
         if result is None:
-            lines.append(f"| {system.label} | not yet | | | | {paper} | | |")
+            lines.append(f"| {system.label} | {pending(ship / system.name)} | | | | {paper} | | |")
             continue
         s, eps = result["summary"], result["episodes"]
         low, high = wilson(sum(e["success"] for e in eps), len(eps))
@@ -712,7 +728,7 @@ def table1_markdown(ship: Path) -> str:
     for name in TABLE1:
         path = ship / name / EVALUATIONS["test"][1]
         if not path.is_file():
-            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | not yet |")
+            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | {pending(ship / name)} |")
             continue
         s = json.loads(path.read_text())["summary"]
         p = s["pruned"]
