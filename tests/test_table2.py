@@ -323,3 +323,54 @@ def test_a_row_not_yet_measured_says_where_its_system_stands(tmp_path):
     assert "| GSMN without J_ground | not yet (supervised epoch 8 of 16) |" in table
     assert "| GSMN without J_lang | not yet (not started) |" in table
     assert "| GSMN, Table 2's recipe | not yet (DAggerFM iteration 7 of 15) |" in table1
+
+
+def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, monkeypatch):
+    """The evaluation flies EVAL_CHUNK environments at a time and keeps each finished chunk's compact episodes
+    beside the stage copy; a machine lost mid-evaluation (run folder gone) flies only the rest."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    control: System = SYSTEMS[0]
+    ship = layout.shipped(control)
+    shutil.copytree(Path(__file__).resolve().parents[1] / "checkpoints" / "gsmn", ship)  # a GSMN checkpoint
+    (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": 2, "epochs": 2,
+                                                 "evaluated": False}))
+    recipe = dataclasses.replace(RECIPES["tiny"], eval_envs=3)
+    ids = table2.environments(recipe)["eval"]
+    monkeypatch.setattr(table2, "EVAL_CHUNK", 2)
+    flights: list[list[str]] = []
+    run = subprocess.run
+
+    def lost_after_one_chunk(command, **kwargs):  # the machine goes while it flies the second chunk
+        flights.append(command)
+        if len(flights) > 1:
+            raise KeyboardInterrupt
+        return run(command, **kwargs)
+
+    monkeypatch.setattr(table2.subprocess, "run", lost_after_one_chunk)
+    lines: list[str] = []
+    try:
+        table2.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
+        raise AssertionError("the second chunk should not have flown")
+    except KeyboardInterrupt:
+        pass
+    kept = json.loads(table2.partial_path(ship, "dev").read_text())
+    assert kept["env_ids"] == ids and [e["env_id"] for e in kept["episodes"]] == ids[:2]
+    assert all("trajectory" not in e and "stage" in e for e in kept["episodes"])
+    assert table2.pending(ship) == "not yet (2 of 3 dev environments flown)"
+    assert table2.describe(layout, control, recipe) == ("evaluating on dev", 2, 3)
+
+    shutil.rmtree(layout.out)  # the machine is lost
+    monkeypatch.setattr(table2.subprocess, "run", run)
+    lines.clear()
+    result = table2.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
+    assert lines == [f"gsmn: 2 of 3 dev environments kept in {table2.partial_path(ship, 'dev')}",
+                     "gsmn: flying 1 dev environments (2 of 3 done)"]
+    assert [e["env_id"] for e in result["episodes"]] == ids and result["episodes"][:2] == kept["episodes"]
+    assert result["summary"]["count"] == 3
+    assert result["summary"]["success"] == 100 * sum(e["success"] for e in result["episodes"]) / 3
+
+    # a partial evaluation of another stage copy (a recipe extended since) is not reused
+    (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": 3, "epochs": 3,
+                                                 "evaluated": False}))
+    assert table2.kept_partial(ship, "dev", ids) == {"episodes": []}
+    assert table2.pending(ship) == "not yet (trained, not evaluated)"

@@ -134,6 +134,33 @@ def environments(recipe: Recipe) -> dict[str, list[int]]:
 # the two evaluations: the dev environments of Table 2 (every system), the test environments of Table 1 (TABLE1)
 EVALUATIONS = {"dev": ("eval", "evaluation.json", "evaluation_full.json", "record"),
                "test": ("table1", "table1.json", "table1_full.json", "record_table1")}
+# environments flown between two kept partial evaluations (committed with --git-commit): a lost machine loses fewer
+EVAL_CHUNK = 50
+
+
+def partial_path(ship: Path, split: str) -> Path:
+    """Where an unfinished evaluation's compact episodes are kept beside the stage copy, chunk by chunk."""
+    return ship / EVALUATIONS[split][1].replace(".json", ".partial.json")
+
+
+def _stage_key(stage: dict | None) -> dict:
+    return {k: (stage or {}).get(k) for k in ("stage", "epoch", "epochs")}
+
+
+def _chunk_tag(stage: dict | None) -> str:
+    key = _stage_key(stage)
+    return f"{key['stage']}{key['epoch']}of{key['epochs']}"
+
+
+def kept_partial(ship: Path, split: str, ids: list[int] | None = None) -> dict:
+    """The kept partial evaluation of this stage copy (on these environments); empty if none, or of another copy."""
+    try:
+        kept = json.loads(partial_path(ship, split).read_text())
+    except (OSError, ValueError):
+        return {"episodes": []}
+    if (ids is not None and kept.get("env_ids") != ids) or kept.get("stage") != _stage_key(read_stage(ship)):
+        return {"episodes": []}
+    return kept
 
 
 # -- stage copies ---------------------------------------------------------------------------------------------
@@ -493,8 +520,9 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
     # 3. evaluation on dev
     evaluation = ship / "evaluation.json"
     if not evaluation.is_file():
-        results = evaluate_system(system, layout, recipe, threads, log)
+        results = evaluate_system(system, layout, recipe, threads, log, commit=commit)
         write_json(evaluation, results)
+        partial_path(ship, "dev").unlink(missing_ok=True)  # the commit below removes it from the repository too
         stage = {**(read_stage(ship) or {}), "evaluated": True}
         (ship / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
         s = results["summary"]
@@ -505,8 +533,9 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
     # 4. Table 1's test environments, for the control and -J_plan
     table1 = ship / EVALUATIONS["test"][1]
     if system.name in TABLE1 and not table1.is_file():
-        results = evaluate_system(system, layout, recipe, threads, log, split="test")
+        results = evaluate_system(system, layout, recipe, threads, log, split="test", commit=commit)
         write_json(table1, results)
+        partial_path(ship, "test").unlink(missing_ok=True)
         s = results["summary"]
         log(f"{system.name}: {s['success']:.1f} % success on {s['count']} test environments (Table 1)")
         if commit:
@@ -522,37 +551,65 @@ def _at_epoch_end(stop_after, stage: str, superseded: list[str]):
 
 
 def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print,
-                    split: str = "dev") -> dict:
-    """Fly the finished system on the dev (or Table 1's test) environments with `gsmn eval` (resumable: its partial
-    file), record the maps, attribute each failure; a compact result."""
+                    split: str = "dev", commit: bool = False) -> dict:
+    """Fly the finished system on the dev (or Table 1's test) environments with `gsmn eval`, record the maps,
+    attribute each failure; a compact result. Flown EVAL_CHUNK environments at a time: each finished chunk's compact
+    episodes are kept beside the stage copy (`partial_path`; committed with `commit`), so a new machine flies only
+    the rest; within a chunk, `gsmn eval --resume` keeps the finished episodes on this machine."""
     from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
+    from gsmn.evaluation import write_json
     from gsmn.model.checkpoint import load_checkpoint
     from gsmn.task.metrics import summarize
 
     ship = layout.shipped(system)
     folder = layout.out / system.name
     which, _, full_name, record_name = EVALUATIONS[split]
-    full, record = folder / full_name, folder / record_name
+    record = folder / record_name
     ids = environments(recipe)[which]
-    if not full.is_file():
-        command = [sys.executable, "-m", "gsmn.cli", "eval", "--system", system.kind, "--checkpoint", str(ship),
-                   "--env-ids", ",".join(map(str, ids)), "--json", str(full), "--record", str(record),
-                   "--workers", "1", "--threads", str(threads), "--preset", recipe.preset]
-        if Path(str(full) + ".partial.jsonl").is_file():
-            command.append("--resume")
-        log(f"{system.name}: flying {len(ids)} {split} environments")
-        subprocess.run(command, check=True)
-    results = json.loads(full.read_text())
-    model, *_ = load_checkpoint(ship)
-    heads, config = Heads.of(model), RunConfig.from_dict(results["config"])
-    episodes = []
-    for ep in results["episodes"]:
-        stage = None
-        if not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
-            stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
-        episodes.append({k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage})
+    kept = kept_partial(ship, split, ids)
+    episodes = {int(e["env_id"]): e for e in kept["episodes"]}
+    config_dict = kept.get("config")
+    if episodes:
+        log(f"{system.name}: {len(episodes)} of {len(ids)} {split} environments kept in {partial_path(ship, split)}")
+    heads, tag = None, _chunk_tag(read_stage(ship))
+    for start in range(0, len(ids), EVAL_CHUNK):
+        chunk = [i for i in ids[start:start + EVAL_CHUNK] if i not in episodes]
+        if not chunk:
+            continue
+        # named by the stage copy and the environments, so a file of another copy or chunking is never reused
+        full = folder / f"{Path(full_name).stem}.{tag}.{start}-{start + len(chunk)}.json"
+        if not full.is_file():
+            command = [sys.executable, "-m", "gsmn.cli", "eval", "--system", system.kind, "--checkpoint", str(ship),
+                       "--env-ids", ",".join(map(str, chunk)), "--json", str(full), "--record", str(record),
+                       "--workers", "1", "--threads", str(threads), "--preset", recipe.preset]
+            if Path(str(full) + ".partial.jsonl").is_file():
+                command.append("--resume")
+            log(f"{system.name}: flying {len(chunk)} {split} environments ({len(episodes)} of {len(ids)} done)")
+            subprocess.run(command, check=True)
+        results = json.loads(full.read_text())
+        if [int(e["env_id"]) for e in results["episodes"]] != chunk:
+            raise ValueError(f"{full} holds other environments than {chunk}: remove it and start again")
+        config_dict = results["config"]
+        if heads is None:
+            model, *_ = load_checkpoint(ship)
+            heads = Heads.of(model)
+        config = RunConfig.from_dict(config_dict)
+        for ep in results["episodes"]:
+            stage = None
+            if not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
+                stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
+            episodes[int(ep["env_id"])] = {k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage}
+        if len(episodes) < len(ids):
+            write_json(partial_path(ship, split), {
+                "system": system.name, "split": split, "env_ids": ids, "stage": _stage_key(read_stage(ship)),
+                "config": config_dict, "episodes": [episodes[i] for i in ids if i in episodes]})
+            if commit:
+                git_commit([partial_path(ship, split)], f"table2: {system.label}, {len(episodes)} of {len(ids)} "
+                           f"{split} environments flown (partial evaluation, for resuming)", log)
+    ordered = [episodes[i] for i in ids]
+    radius = RunConfig.from_dict(config_dict).task.success_radius
     return {"system": system.name, "label": system.label, "recipe": recipe.to_dict(), "split": split, "env_ids": ids,
-            "summary": summarize(results["episodes"], config.task.success_radius).to_dict(), "episodes": episodes}
+            "summary": summarize(ordered, radius).to_dict(), "episodes": ordered}
 
 
 PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabilities")  # not kept: the bulk
@@ -627,16 +684,14 @@ def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, 
         return f"collecting {STORES[c['store']]}", int(c["done"]), int(c["total"])
     except (OSError, ValueError, KeyError):
         pass
-    partial = folder / "evaluation_full.json.partial.jsonl"
-    if (layout.shipped(system) / "evaluation.json").is_file():
-        if system.name not in TABLE1 or (layout.shipped(system) / "table1.json").is_file():
+    ship = layout.shipped(system)
+    if (ship / "evaluation.json").is_file():
+        if system.name not in TABLE1 or (ship / "table1.json").is_file():
             return "evaluated", 1, 1
-        partial = folder / "table1_full.json.partial.jsonl"
-        done = max(0, len(partial.read_text().splitlines()) - 1) if partial.is_file() else 0
-        return "evaluating on test (Table 1)", done, recipe.table1_envs
-    if partial.is_file() or (folder / "evaluation_full.json").is_file():
-        done = max(0, len(partial.read_text().splitlines()) - 1) if partial.is_file() else recipe.eval_envs
-        return "evaluating on dev", done, recipe.eval_envs
+        return ("evaluating on test (Table 1)", min(_evaluation_done(layout, system, "test"), recipe.table1_envs),
+                recipe.table1_envs)
+    if kept_partial(ship, "dev")["episodes"] or list(folder.glob(f"evaluation_full.{_chunk_tag(read_stage(ship))}.*")):
+        return "evaluating on dev", min(_evaluation_done(layout, system, "dev"), recipe.eval_envs), recipe.eval_envs
     for stage in ("dagger", "supervised"):
         try:
             p = json.loads((folder / stage / "progress.json").read_text())
@@ -650,6 +705,20 @@ def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, 
             return where, int(p.get("done", 0)), int(p.get("rollouts", 1))
         return where, int(p.get("batch", 0)), int(p.get("batches", 1))
     return "starting", 0, 1
+
+
+def _evaluation_done(layout: Layout, system: System, split: str) -> int:
+    """Episodes of an evaluation in progress: those kept beside the stage copy, and those of the chunk in flight."""
+    ship = layout.shipped(system)
+    kept = len(kept_partial(ship, split)["episodes"])
+    stem, tag = Path(EVALUATIONS[split][2]).stem, _chunk_tag(read_stage(ship))
+    flying = 0
+    for path in (layout.out / system.name).glob(f"{stem}.{tag}.*.json.partial.jsonl"):
+        try:
+            flying += max(0, len(path.read_text().splitlines()) - 1)  # a header line, then an episode a line
+        except OSError:
+            pass
+    return kept + flying
 
 
 # -- the table ------------------------------------------------------------------------------------------------
@@ -681,11 +750,14 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return 100 * (centre - half), 100 * (centre + half)
 
 
-def pending(ship: Path) -> str:
+def pending(ship: Path, split: str = "dev") -> str:
     """A row not yet measured, with where its system stands: "not yet (DAggerFM iteration 7 of 15)"."""
     stage = read_stage(ship)
     if stage is None:
         return "not yet (not started)"
+    kept = kept_partial(ship, split)
+    if kept["episodes"]:
+        return f"not yet ({len(kept['episodes'])} of {len(kept['env_ids'])} {split} environments flown)"
     return "not yet (trained, not evaluated)" if trained(stage) else f"not yet ({training_stage(stage)})"
 
 
@@ -728,7 +800,7 @@ def table1_markdown(ship: Path) -> str:
     for name in TABLE1:
         path = ship / name / EVALUATIONS["test"][1]
         if not path.is_file():
-            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | {pending(ship / name)} |")
+            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | {pending(ship / name, 'test')} |")
             continue
         s = json.loads(path.read_text())["summary"]
         p = s["pruned"]
