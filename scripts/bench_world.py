@@ -2,7 +2,7 @@
 
     python scripts/bench_world.py [--envs 5] [--steps 50] [--repeats 3]
 
-Prints one table per preset (paper: shadows + 4x MSAA; tiny: neither). Each figure is the median over
+Prints one table per preset (paper: shadows, no MSAA; tiny: neither). Each figure is the median over
 all measured calls; the loop rate is the median over repeats of (steps / wall time) for step + render.
 """
 
