@@ -571,7 +571,8 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
     config_dict = kept.get("config")
     if episodes:
         log(f"{system.name}: {len(episodes)} of {len(ids)} {split} environments kept in {partial_path(ship, split)}")
-    heads, tag = None, _chunk_tag(read_stage(ship))
+    stage_key = _stage_key(read_stage(ship))  # read once: the stage copy does not change while it is evaluated
+    heads, tag = None, _chunk_tag(stage_key)
     for start in range(0, len(ids), EVAL_CHUNK):
         chunk = [i for i in ids[start:start + EVAL_CHUNK] if i not in episodes]
         if not chunk:
@@ -601,7 +602,7 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
             episodes[int(ep["env_id"])] = {k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage}
         if len(episodes) < len(ids):
             write_json(partial_path(ship, split), {
-                "system": system.name, "split": split, "env_ids": ids, "stage": _stage_key(read_stage(ship)),
+                "system": system.name, "split": split, "env_ids": ids, "stage": stage_key,
                 "config": config_dict, "episodes": [episodes[i] for i in ids if i in episodes]})
             if commit:
                 git_commit([partial_path(ship, split)], f"table2: {system.label}, {len(episodes)} of {len(ids)} "
