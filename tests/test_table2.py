@@ -180,6 +180,26 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     # a start after the end does nothing more
     assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
 
+    # the recipe extended by an iteration (as below the control gate): the run goes on from its saved state, the
+    # further stage copy replaces the evaluations, and the new model is evaluated on dev; below the gate, no Table 1
+    longer = dataclasses.replace(recipe, iterations=3, control_gate=101.0)
+    assert data_needed(layout, recipe, [control]) == () and data_needed(layout, longer, [control]) == ("dev",)
+    lines.clear()
+    extended = run_system(control, layout, longer, threads=1, commit=True, log=lines.append)
+    log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in log] == [1, 2, 3]
+    stage = json.loads((ship / "stage.json").read_text())
+    assert (stage["epoch"], stage["epochs"], stage["evaluated"]) == (3, 3, True)
+    assert extended == json.loads((ship / "evaluation.json").read_text()) and extended["summary"]["count"] == 1
+    assert not (ship / "table1.json").exists(), "the old model's Table 1 evaluation went with its stage copy"
+    assert table2.control_below_gate(layout, longer) == extended["summary"]["success"]
+    assert lines[-1] == (f"gsmn: no Table 1 evaluation: the control flies {extended['summary']['success']:.1f} % "
+                         "on dev, below the recipe's gate of 101 % (docs/training.md)")
+    assert _git(repo, "log", "-2", "--format=%s").splitlines() == [
+        "table2: GSMN, evaluated on 1 dev environments",
+        "table2: GSMN, dagger iteration 3 of 3 (stage copy for resuming)"]
+    assert _git(repo, "status", "--porcelain") == ""
+
 
 def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised_one(tmp_path):
     """Between the end of supervised learning and DAggerFM's first stage copy the shipped stage is the last epoch's:
@@ -215,12 +235,11 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
 
     assert table2.keep_latest(layout, [control]) == []  # nothing finished yet
     stage_folder(layout.shipped(control), "supervised", 4, b"epoch 4")
-    (layout.shipped(control) / "evaluation.json").write_text("{}")  # kept across the swap
     stage_folder(layout.latest(control), "supervised", 6, b"epoch 6")
     assert table2.keep_latest(layout, [control]) == [control.name]
     ship = layout.shipped(control)
     assert (ship / "weights.safetensors").read_bytes() == b"epoch 6"
-    assert table2.read_stage(ship)["epoch"] == 6 and (ship / "evaluation.json").is_file()
+    assert table2.read_stage(ship)["epoch"] == 6
     assert not list(ship.parent.glob(".*"))  # no temporary folder left
 
     shutil.rmtree(layout.latest(control))
@@ -231,6 +250,58 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
     stage_folder(layout.latest(control), "dagger", 1, b"iteration 1")  # DAggerFM is further than any epoch
     assert table2.keep_latest(layout, [control]) == [control.name]
     assert table2.read_stage(ship)["stage"] == "dagger"
+
+    # an evaluated copy is up to date at the same iteration; one further on (a recipe extended since) replaces it
+    # with its evaluations, which measured the older model
+    (ship / "evaluation.json").write_text("{}")
+    (ship / "table1.json").write_text("{}")
+    (ship / "stage.json").write_text(json.dumps({**table2.read_stage(ship), "evaluated": True}))
+    assert table2.keep_latest(layout, [control]) == []
+    assert (ship / "evaluation.json").is_file() and table2.read_stage(ship)["evaluated"] is True
+    shutil.rmtree(layout.latest(control))
+    stage_folder(layout.latest(control), "dagger", 2, b"iteration 2")
+    assert table2.keep_latest(layout, [control]) == [control.name]
+    assert (ship / "weights.safetensors").read_bytes() == b"iteration 2"
+    assert table2.read_stage(ship)["evaluated"] is False
+    assert not (ship / "evaluation.json").exists() and not (ship / "table1.json").exists()
+
+
+def test_below_the_control_gate_no_table1_evaluation_flies(tmp_path, monkeypatch):
+    """The control's dev success below the recipe's gate stops Table 1's test evaluations (their models would be
+    trained on under an extended recipe): none starts, and one under way stops before its next chunk."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    recipe = dataclasses.replace(RECIPES["tiny"], control_gate=60.0)
+    control, no_plan = table2.BY_NAME["gsmn"], table2.BY_NAME["no-plan"]
+
+    def evaluated(system: System, success: float | None, epochs: int = recipe.iterations) -> None:
+        ship = layout.shipped(system)
+        ship.mkdir(parents=True, exist_ok=True)
+        (ship / "stage.json").write_text(json.dumps({"system": system.name, "stage": "dagger", "epoch": epochs,
+                                                     "epochs": epochs, "evaluated": success is not None}))
+        if success is not None:
+            (ship / "evaluation.json").write_text(json.dumps({"summary": {"success": success}}))
+
+    evaluated(control, None)
+    assert table2.control_below_gate(layout, recipe) is None  # not yet known
+    evaluated(control, 70.0)
+    assert table2.control_below_gate(layout, recipe) is None
+    evaluated(control, 50.0, epochs=recipe.iterations + 1)  # another recipe's evaluation says nothing of this one
+    assert table2.control_below_gate(layout, recipe) is None
+    evaluated(control, 50.0)
+    assert table2.control_below_gate(layout, recipe) == 50.0
+
+    evaluated(no_plan, 40.0)
+    assert table2.describe(layout, no_plan, recipe) == (
+        "evaluated on dev (the control is below the gate: no Table 1)", 1, 1)
+
+    def no_flight(command, **kwargs):
+        raise AssertionError(f"flew {command}")
+
+    monkeypatch.setattr(table2.subprocess, "run", no_flight)
+    asked: list[bool] = []
+    assert table2.evaluate_system(no_plan, layout, recipe, threads=1, log=lambda s: None, split="test",
+                                  stop=lambda: asked.append(True) or True) is None
+    assert asked == [True]
 
 
 def test_a_running_system_goes_on_from_a_further_stage_copy_shipped_from_elsewhere(tmp_path):

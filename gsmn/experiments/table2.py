@@ -10,7 +10,9 @@ epochs, DAggerFM schedule, seeds, evaluation) is the `Recipe`'s, the same for al
                  `recipe.train_envs`), from the supervised checkpoint, with Adam started afresh
     evaluate     flown plainly on the first `recipe.eval_envs` dev environments with the maps recorded, each failure
                  attributed to a stage (gsmn.attribution)
-    table 1      the control and -J_plan (`TABLE1`) also on Table 1's first `recipe.table1_envs` test environments
+    table 1      the control and -J_plan (`TABLE1`) also on Table 1's first `recipe.table1_envs` test environments,
+                 once the control's dev success has passed `recipe.control_gate` (below it, no further system starts:
+                 the recipe is extended for all six, and a run goes on from its saved state to the longer end)
 
 Surviving the loss of the machine. `runs/` and `data/` may be gone at the next start. The expert data is rebuilt by
 collection (deterministic by environment id). Each system's latest finished stage (every `publish_every_epochs`
@@ -22,7 +24,7 @@ Every finished epoch and iteration is also copied to `OUT/<name>/latest` (not co
 A start whose run folder is behind that copy restores the run from it and goes on; a DAggerFM run restored this
 way has no dataset and refills it from the current mixture policy (gsmn.training.dagger). The finished evaluation
 is kept there too, compactly (`evaluation.json`, `table1.json`: one line of figures per episode, no trajectories),
-so the tables need nothing else.
+so the tables need nothing else; a further stage copy (a recipe extended since) replaces them, not yet evaluated.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -223,10 +226,20 @@ def publish(run_root: Path, ship: Path, stage: dict, supervised_log: Path | None
         shutil.copy2(source, tmp / "run" / name)
     if supervised_log is not None:
         shutil.copy2(supervised_log, tmp / "run" / SUPERVISED_LOG)
-    if (ship / "evaluation.json").is_file():
-        shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
-    (tmp / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
+    evaluated = _carry_evaluations(ship, tmp, stage)
+    (tmp / "stage.json").write_text(json.dumps({**stage, "evaluated": evaluated}, indent=1, sort_keys=True) + "\n")
     _swap(tmp, ship)
+
+
+def _carry_evaluations(ship: Path, tmp: Path, stage: dict) -> bool:
+    """Copy the evaluations of the stage copy at `ship` into its replacement `tmp` where both are the same stage;
+    a further stage (a recipe extended since) is a new model, not yet evaluated. Returns whether `tmp` is evaluated."""
+    if _stage_key(read_stage(ship)) != _stage_key(stage):
+        return False
+    for name in ("evaluation.json", EVALUATIONS["test"][1]):
+        if (ship / name).is_file():
+            shutil.copy2(ship / name, tmp / name)
+    return (tmp / "evaluation.json").is_file()
 
 
 def _swap(tmp: Path, ship: Path) -> None:
@@ -239,13 +252,10 @@ def _swap(tmp: Path, ship: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _stage_order(stage: dict | None, evaluated_last: bool = True) -> tuple[int, int]:
-    """How far a stage copy is: supervised before DAggerFM, then by epoch (iteration); evaluated is furthest (unless
-    not `evaluated_last`: how far its training is)."""
+def _stage_order(stage: dict | None) -> tuple[int, int]:
+    """How far a stage copy's training is: supervised before DAggerFM, then by epoch (iteration)."""
     if not stage:
         return (-1, -1)
-    if evaluated_last and stage.get("evaluated"):
-        return (2, 0)
     return (0 if stage.get("stage") == "supervised" else 1, int(stage.get("epoch", 0)))
 
 
@@ -278,9 +288,7 @@ def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log
                 continue
             tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
             shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(latest, tmp)
-            if (ship / "evaluation.json").is_file():
-                shutil.copy2(ship / "evaluation.json", tmp / "evaluation.json")
+            shutil.copytree(latest, tmp)  # further on: not yet evaluated (its stage.json says so)
             _swap(tmp, ship)
         what = "epoch" if new.get("stage") == "supervised" else "iteration"
         where = f"{'supervised' if new.get('stage') == 'supervised' else 'dagger'} {what} {new['epoch']} of " \
@@ -403,8 +411,6 @@ def data_needed(layout: Layout, recipe: Recipe, systems: list[System]) -> tuple[
     needed = set()
     for system in systems:
         stage = read_stage(layout.shipped(system)) or {}
-        if stage.get("evaluated"):
-            continue
         dagger_epoch = max(stage.get("epoch", -1) if stage.get("stage") == "dagger" else -1,
                            _state_epoch(layout.run(system, "dagger")))
         if dagger_epoch < recipe.iterations:  # the evaluation flies environments; it reads no expert data
@@ -467,13 +473,13 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         with ship_lock(ship):
             shipped = read_stage(ship)
             # shipped from another machine while this trained (evaluated or not: a longer recipe trains on past it)
-            if _stage_order(shipped, evaluated_last=False) > _stage_order(stage, evaluated_last=False):
+            if _stage_order(shipped) > _stage_order(stage):
                 log(f"{system.name}: {ship} holds a further stage ({describe_stage(shipped, ship)}): not replaced")
                 superseded.append(name)
                 return
             if not to_ship:
                 return
-            publish(run_root, ship, {**stage, "evaluated": (ship / "evaluation.json").is_file()}, supervised_log)
+            publish(run_root, ship, stage, supervised_log)
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
         log(f"{system.name}: kept {where} in {ship}")
         if commit:
@@ -530,10 +536,21 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         if commit:
             git_commit([ship], f"table2: {system.label}, evaluated on {s['count']} dev environments", log)
 
-    # 4. Table 1's test environments, for the control and -J_plan
+    # 4. Table 1's test environments, for the control and -J_plan, unless the control missed the gate (a recipe
+    # extended for all six would make this evaluation stale)
     table1 = ship / EVALUATIONS["test"][1]
     if system.name in TABLE1 and not table1.is_file():
-        results = evaluate_system(system, layout, recipe, threads, log, split="test", commit=commit)
+        def below_gate() -> bool:
+            success = control_below_gate(layout, recipe)
+            if success is not None:
+                log(f"{system.name}: no Table 1 evaluation: the control flies {success:.1f} % on dev, below the "
+                    f"recipe's gate of {recipe.control_gate:.0f} % (docs/training.md)")
+            return success is not None
+
+        results = None if below_gate() else evaluate_system(system, layout, recipe, threads, log, split="test",
+                                                            commit=commit, stop=below_gate)
+        if results is None:
+            return json.loads(evaluation.read_text())
         write_json(table1, results)
         partial_path(ship, "test").unlink(missing_ok=True)
         s = results["summary"]
@@ -551,11 +568,12 @@ def _at_epoch_end(stop_after, stage: str, superseded: list[str]):
 
 
 def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int, log=print,
-                    split: str = "dev", commit: bool = False) -> dict:
+                    split: str = "dev", commit: bool = False, stop: Callable[[], bool] | None = None) -> dict | None:
     """Fly the finished system on the dev (or Table 1's test) environments with `gsmn eval`, record the maps,
     attribute each failure; a compact result. Flown EVAL_CHUNK environments at a time: each finished chunk's compact
     episodes are kept beside the stage copy (`partial_path`; committed with `commit`), so a new machine flies only
-    the rest; within a chunk, `gsmn eval --resume` keeps the finished episodes on this machine."""
+    the rest; within a chunk, `gsmn eval --resume` keeps the finished episodes on this machine. None where `stop()`,
+    asked before each chunk, says to stop (the chunks flown are kept)."""
     from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
     from gsmn.evaluation import write_json
     from gsmn.model.checkpoint import load_checkpoint
@@ -577,6 +595,8 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
         chunk = [i for i in ids[start:start + EVAL_CHUNK] if i not in episodes]
         if not chunk:
             continue
+        if stop is not None and stop():
+            return None
         # named by the stage copy and the environments, so a file of another copy or chunking is never reused
         full = folder / f"{Path(full_name).stem}.{tag}.{start}-{start + len(chunk)}.json"
         if not full.is_file():
@@ -617,6 +637,19 @@ PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabil
 
 
 # -- the programme ----------------------------------------------------------------------------------------------
+def control_below_gate(layout: Layout, recipe: Recipe) -> float | None:
+    """The control's dev success where it is evaluated, trained to this recipe's end and below its gate; else None."""
+    ship = layout.shipped(SYSTEMS[0])
+    stage = read_stage(ship) or {}
+    if not (stage.get("evaluated") and trained(stage) and stage.get("epochs") == recipe.iterations):
+        return None
+    try:
+        success = json.loads((ship / "evaluation.json").read_text())["summary"]["success"]
+    except (OSError, ValueError, KeyError):
+        return None
+    return success if success < recipe.control_gate else None
+
+
 def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: list[System], parallel: int = 2,
                   commit: bool = False, device: str = "cpu") -> int:
     """Every system's pipeline, `parallel` at a time, the machine's cores shared out among them (on two cores: one
@@ -651,12 +684,12 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
                     failed.append(name)
                     tqdm.write(f"{name}: stopped with status {process.returncode}; see {layout.out / name / 'log.txt'}")
                 if name == SYSTEMS[0].name and name not in failed:
-                    success = json.loads((layout.shipped(BY_NAME[name]) / "evaluation.json").read_text())
-                    if success["summary"]["success"] < recipe.control_gate:
+                    success = control_below_gate(layout, recipe)
+                    if success is not None:
                         gate_closed = True
-                        tqdm.write(f"the control flies {success['summary']['success']:.1f} % on dev, below the "
-                                   f"recipe's gate of {recipe.control_gate:.0f} %: the ablations' drops would be "
-                                   "noise, so no further system starts (docs/training.md)")
+                        tqdm.write(f"the control flies {success:.1f} % on dev, below the recipe's gate of "
+                                   f"{recipe.control_gate:.0f} %: the ablations' drops would be noise, so no further "
+                                   "system starts and no Table 1 evaluation either (docs/training.md)")
             for name, bar in bars.items():
                 desc, done, total = describe(layout, BY_NAME[name], recipe)
                 bar.set_description_str(f"{name}: {desc}", refresh=False)
@@ -689,6 +722,8 @@ def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, 
     if (ship / "evaluation.json").is_file():
         if system.name not in TABLE1 or (ship / "table1.json").is_file():
             return "evaluated", 1, 1
+        if control_below_gate(layout, recipe) is not None:
+            return "evaluated on dev (the control is below the gate: no Table 1)", 1, 1
         return ("evaluating on test (Table 1)", min(_evaluation_done(layout, system, "test"), recipe.table1_envs),
                 recipe.table1_envs)
     if kept_partial(ship, "dev")["episodes"] or list(folder.glob(f"evaluation_full.{_chunk_tag(read_stage(ship))}.*")):
