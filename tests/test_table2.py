@@ -97,7 +97,7 @@ def _git(repo: Path, *args: str) -> str:
     return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout
 
 
-def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine(tmp_path):
+def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine(tmp_path, monkeypatch):
     """Supervised learning and one DAggerFM iteration, each stage copied and committed; then the machine is lost
     (run folders and expert data gone): a new start restores the DAggerFM run from the commit, rebuilds only the dev
     data, refills the DAggerFM dataset from the current mixture, finishes, and keeps a compact evaluation."""
@@ -184,8 +184,23 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     # further stage copy replaces the evaluations, and the new model is evaluated on dev; below the gate, no Table 1
     longer = dataclasses.replace(recipe, iterations=3, control_gate=101.0)
     assert data_needed(layout, recipe, [control]) == () and data_needed(layout, longer, [control]) == ("dev",)
+    publish = table2.publish
+
+    def killed_while_copying(run_root, folder, stage, supervised_log=None):  # after the run saved its state
+        if folder == ship:
+            raise KeyboardInterrupt
+        publish(run_root, folder, stage, supervised_log)
+
+    monkeypatch.setattr(table2, "publish", killed_while_copying)
+    try:
+        run_system(control, layout, longer, threads=1, commit=True, log=lines.append)
+        raise AssertionError("the stage copy should not have been made")
+    except KeyboardInterrupt:
+        pass
+    assert table2._state_epoch(layout.run(control, "dagger")) == 3 and table2.read_stage(ship)["epoch"] == 2
+    monkeypatch.setattr(table2, "publish", publish)
     lines.clear()
-    extended = run_system(control, layout, longer, threads=1, commit=True, log=lines.append)
+    extended = run_system(control, layout, longer, threads=1, commit=True, log=lines.append)  # copies, evaluates
     log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2, 3]
     stage = json.loads((ship / "stage.json").read_text())
@@ -199,6 +214,11 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
         "table2: GSMN, evaluated on 1 dev environments",
         "table2: GSMN, dagger iteration 3 of 3 (stage copy for resuming)"]
     assert _git(repo, "status", "--porcelain") == ""
+    # a kill between the evaluation and its flag in stage.json: the next start sets the flag, flying nothing
+    table2.write_stage(ship, {**table2.read_stage(ship), "evaluated": False})
+    lines.clear()
+    assert run_system(control, layout, longer, threads=1, log=lines.append) == extended
+    assert table2.read_stage(ship)["evaluated"] is True and not any("flying" in line for line in lines)
 
 
 def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised_one(tmp_path):
@@ -445,3 +465,29 @@ def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, mon
                                                  "evaluated": False}))
     assert table2.kept_partial(ship, "dev", ids) == {"episodes": []}
     assert table2.pending(ship) == "not yet (trained, not evaluated)"
+
+
+def test_the_programme_ends_when_the_control_is_below_the_gate(tmp_path, monkeypatch):
+    """Once the control's process ends below the gate no further system starts, and the programme ends (status 1)
+    when the running ones are done."""
+    layout = Layout(tmp_path / "runs", tmp_path / "ship")
+    recipe = dataclasses.replace(RECIPES["tiny"], control_gate=60.0)
+    ship = layout.shipped(SYSTEMS[0])
+    ship.mkdir(parents=True)
+    (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": recipe.iterations,
+                                                 "epochs": recipe.iterations, "evaluated": True}))
+    (ship / "evaluation.json").write_text(json.dumps({"summary": {"success": 50.0}}))
+    started: list[str] = []
+
+    class Finished:  # a system's process, done at once (its pipeline is tested above)
+        returncode = 0
+
+        def __init__(self, command, **kwargs):
+            started.append(command[command.index("--system") + 1])
+
+        def poll(self):
+            return 0
+
+    monkeypatch.setattr(table2.subprocess, "Popen", Finished)
+    assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
+    assert started == ["gsmn", "no-plan"]

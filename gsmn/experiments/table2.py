@@ -174,6 +174,13 @@ def read_stage(ship: Path) -> dict | None:
         return None
 
 
+def write_stage(ship: Path, stage: dict) -> None:
+    """Write a stage copy's stage.json atomically: a kill leaves the old one or the new one."""
+    tmp = ship / f".stage.json.tmp{os.getpid()}"
+    tmp.write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
+    tmp.replace(ship / "stage.json")
+
+
 def describe_stage(stage: dict, ship: Path) -> str:
     """A stage copy as a person reads it: "GSMN without J_ground (Table 2: 52.0 % on 300 dev)", or where its
     training stands."""
@@ -191,6 +198,11 @@ def describe_stage(stage: dict, ship: Path) -> str:
 
 def trained(stage: dict) -> bool:
     return stage.get("stage") == "dagger" and stage.get("epoch") == stage.get("epochs")
+
+
+def finished(stage: dict | None, recipe: Recipe) -> bool:
+    """Trained to the end of this recipe (not of a shorter one extended since)."""
+    return bool(stage) and trained(stage) and stage.get("epochs") == recipe.iterations
 
 
 def training_stage(stage: dict) -> str:
@@ -236,7 +248,8 @@ def _carry_evaluations(ship: Path, tmp: Path, stage: dict) -> bool:
     a further stage (a recipe extended since) is a new model, not yet evaluated. Returns whether `tmp` is evaluated."""
     if _stage_key(read_stage(ship)) != _stage_key(stage):
         return False
-    for name in ("evaluation.json", EVALUATIONS["test"][1]):
+    for name in [EVALUATIONS[split][1] for split in EVALUATIONS] + [partial_path(ship, split).name
+                                                                   for split in EVALUATIONS]:
         if (ship / name).is_file():
             shutil.copy2(ship / name, tmp / name)
     return (tmp / "evaluation.json").is_file()
@@ -485,6 +498,13 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
         if commit:
             git_commit([ship], f"table2: {system.label}, {where} (stage copy for resuming)", log)
 
+    def catch_up(run_root: Path, name: str, total: int) -> bool:
+        """Copy the finished run's last epoch to the stage copy where a kill came between the run's saved state and
+        that copy (a restart trains no further, so `keep` is not called again); False if superseded meanwhile."""
+        if _stage_order(read_stage(ship)) < _stage_order({"stage": name, "epoch": total}):
+            keep(run_root, name, total, total, True)
+        return not superseded
+
     # 1. supervised learning
     if stage.get("stage") == "supervised" and _state_epoch(sup_run) < stage["epoch"]:
         log(f"{system.name}: restoring supervised epoch {stage['epoch']} from {ship}")
@@ -501,6 +521,8 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
                          on_epoch=on_epoch, stop_after=_at_epoch_end(stop_after, "supervised", superseded))
         if superseded or _state_epoch(sup_run) < recipe.epochs:
             return None
+    if not in_dagger and not catch_up(sup_run, "supervised", recipe.epochs):
+        return None
 
     # 2. DAggerFM
     if stage.get("stage") == "dagger" and _state_epoch(dagger_run) < stage["epoch"]:
@@ -520,18 +542,18 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
                  EpisodeStore(layout.data / "expert_dev"), env_ids=environments(recipe)["fresh"], log=log,
                  on_progress=on_progress, on_iteration=on_iteration,
                  stop_after=_at_epoch_end(stop_after, "dagger", superseded))
-    if superseded or _state_epoch(dagger_run) < recipe.iterations:
+    if superseded or _state_epoch(dagger_run) < recipe.iterations or not catch_up(dagger_run, "dagger",
+                                                                                   recipe.iterations):
         return None
 
     # 3. evaluation on dev
     evaluation = ship / "evaluation.json"
-    if not evaluation.is_file():
-        results = evaluate_system(system, layout, recipe, threads, log, commit=commit)
-        write_json(evaluation, results)
+    if not evaluation.is_file() or not (read_stage(ship) or {}).get("evaluated"):
+        if not evaluation.is_file():
+            write_json(evaluation, evaluate_system(system, layout, recipe, threads, log, commit=commit))
         partial_path(ship, "dev").unlink(missing_ok=True)  # the commit below removes it from the repository too
-        stage = {**(read_stage(ship) or {}), "evaluated": True}
-        (ship / "stage.json").write_text(json.dumps(stage, indent=1, sort_keys=True) + "\n")
-        s = results["summary"]
+        write_stage(ship, {**(read_stage(ship) or {}), "evaluated": True})
+        s = json.loads(evaluation.read_text())["summary"]
         log(f"{system.name}: {s['success']:.1f} % success on {s['count']} dev environments")
         if commit:
             git_commit([ship], f"table2: {system.label}, evaluated on {s['count']} dev environments", log)
@@ -641,7 +663,7 @@ def control_below_gate(layout: Layout, recipe: Recipe) -> float | None:
     """The control's dev success where it is evaluated, trained to this recipe's end and below its gate; else None."""
     ship = layout.shipped(SYSTEMS[0])
     stage = read_stage(ship) or {}
-    if not (stage.get("evaluated") and trained(stage) and stage.get("epochs") == recipe.iterations):
+    if not (stage.get("evaluated") and finished(stage, recipe)):
         return None
     try:
         success = json.loads((ship / "evaluation.json").read_text())["summary"]["success"]
@@ -664,7 +686,7 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
     bars: dict[str, Any] = {}
     gate_closed = False
     try:
-        while pending or running:
+        while (pending and not gate_closed) or running:
             while pending and len(running) < parallel and not gate_closed:
                 system = pending.pop(0)
                 (layout.out / system.name).mkdir(parents=True, exist_ok=True)
@@ -719,7 +741,7 @@ def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, 
     except (OSError, ValueError, KeyError):
         pass
     ship = layout.shipped(system)
-    if (ship / "evaluation.json").is_file():
+    if (ship / "evaluation.json").is_file() and finished(read_stage(ship), recipe):
         if system.name not in TABLE1 or (ship / "table1.json").is_file():
             return "evaluated", 1, 1
         if control_below_gate(layout, recipe) is not None:
