@@ -239,7 +239,7 @@ def publish(run_root: Path, ship: Path, stage: dict, supervised_log: Path | None
     if supervised_log is not None:
         shutil.copy2(supervised_log, tmp / "run" / SUPERVISED_LOG)
     evaluated = _carry_evaluations(ship, tmp, stage)
-    (tmp / "stage.json").write_text(json.dumps({**stage, "evaluated": evaluated}, indent=1, sort_keys=True) + "\n")
+    write_stage(tmp, {**stage, "evaluated": evaluated})
     _swap(tmp, ship)
 
 
@@ -248,10 +248,10 @@ def _carry_evaluations(ship: Path, tmp: Path, stage: dict) -> bool:
     a further stage (a recipe extended since) is a new model, not yet evaluated. Returns whether `tmp` is evaluated."""
     if _stage_key(read_stage(ship)) != _stage_key(stage):
         return False
-    for name in [EVALUATIONS[split][1] for split in EVALUATIONS] + [partial_path(ship, split).name
-                                                                   for split in EVALUATIONS]:
-        if (ship / name).is_file():
-            shutil.copy2(ship / name, tmp / name)
+    for split in EVALUATIONS:
+        for path in (ship / EVALUATIONS[split][1], partial_path(ship, split)):
+            if path.is_file():
+                shutil.copy2(path, tmp / path.name)
     return (tmp / "evaluation.json").is_file()
 
 
