@@ -435,8 +435,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="fly a system on environments and print its Table 1 row")
     p.add_argument("--system", required=True,
-                   help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem (checkpoints/SYSTEM unless --checkpoint), oracle, "
-                        "avg-forward, random-point, random-landmark")
+                   help="gsmn, gsmn-no-plan, gs-fpv, gs-fpv-mem (checkpoints/SYSTEM unless --checkpoint; gsmn-no-plan: "
+                        "checkpoints/table2/no-plan), oracle, avg-forward, random-point, random-landmark")
     p.add_argument("--checkpoint", default=None, help="the system's checkpoint (avg-forward: its JSON)")
     p.add_argument("--split", choices=("train", "test", "dev"), default=None, help="evaluate on this split")
     p.add_argument("--episodes", type=int, default=None, help="how many environments of the split (default 750)")

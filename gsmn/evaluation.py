@@ -37,15 +37,18 @@ REPO_ROOT = Path(gsmn.__file__).resolve().parents[1]
 AVG_FORWARD_PATH = REPO_ROOT / "checkpoints" / "avg_forward.json"
 LEARNED_SYSTEMS = ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem")
 SYSTEMS = LEARNED_SYSTEMS + TRIVIAL_SYSTEMS
+# A learned system's checkpoint when none is named: checkpoints/SYSTEM, except GSMN without J_plan, whose shipped
+# model is Table 2's (`gsmn experiment table2`, docs/results.md).
+DEFAULT_CHECKPOINTS = {"gsmn-no-plan": "table2/no-plan"}
 
 
 def checkpoint_path(system: str, checkpoint: str | Path | None = None) -> Path | None:
-    """Where `system` loads from: `checkpoint`, else its default (checkpoints/SYSTEM for a learned system,
-    checkpoints/avg_forward.json for avg-forward); None for systems without one."""
+    """Where `system` loads from: `checkpoint`, else its default (checkpoints/SYSTEM for a learned system, or its
+    `DEFAULT_CHECKPOINTS` entry; checkpoints/avg_forward.json for avg-forward); None for systems without one."""
     if checkpoint:
         return Path(checkpoint)
     if system in LEARNED_SYSTEMS:
-        return REPO_ROOT / "checkpoints" / system
+        return REPO_ROOT / "checkpoints" / DEFAULT_CHECKPOINTS.get(system, system)
     return AVG_FORWARD_PATH if system == "avg-forward" else None
 
 

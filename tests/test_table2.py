@@ -416,6 +416,29 @@ def test_a_row_not_yet_measured_says_where_its_system_stands(tmp_path):
     assert "| GSMN, Table 2's recipe | not yet (DAggerFM iteration 7 of 15) |" in table1
 
 
+def test_table1_rows_stand_beside_the_papers_with_the_paired_comparison(tmp_path):
+    """Table 1's rows of the control and -J_plan in docs/results.md's columns, the paper's figures by model kind
+    (-J_plan's are the paper's GSMN - J_goal), and -J_plan's paired comparison over the same environments."""
+    def kept(name: str, outcomes: list[bool]) -> None:
+        episodes = [{"env_id": 70 + i, "success": ok} for i, ok in enumerate(outcomes)]
+        figures = {"success": 100.0 * sum(outcomes) / len(outcomes), "landmark_success": 50.0,
+                   "mean_distance": 3.0, "median_distance": 2.0}
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "table1.json").write_text(json.dumps({
+            "system": name, "split": "test", "env_ids": [e["env_id"] for e in episodes], "episodes": episodes,
+            "summary": {**figures, "count": len(episodes), "pruned": figures}}))
+
+    kept("gsmn", [True, True, True, False])
+    kept("no-plan", [False, False, True, True])
+    lines = table2.table1_markdown(tmp_path).splitlines()
+    assert lines[2] == ("| GSMN, Table 2's recipe (`checkpoints/table2/gsmn`) | 75.00 (75.00) | 83.47 (87.21) | "
+                        "50.00 (50.00) | 89.33 (93.38) | 3.00 (3.00) | 2.67 (2.24) | 2.00 (2.00) | 1.21 (1.12) |")
+    assert lines[3].startswith("| GSMN without J_plan, Table 2's recipe (`checkpoints/table2/no-plan`) | 50.00 "
+                               "(50.00) | 69.89 (71.03) |")
+    assert lines[-1] == ("GSMN without J_plan against GSMN, paired over the same 4 environments: 1 fixed / 2 broken, "
+                         f"sign test p {table2.sign_test(1, 2):.2g}")
+
+
 def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, monkeypatch):
     """The evaluation flies EVAL_CHUNK environments at a time and keeps each finished chunk's compact episodes
     beside the stage copy; a machine lost mid-evaluation (run folder gone) flies only the rest."""

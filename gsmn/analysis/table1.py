@@ -22,6 +22,8 @@ NAMES = {"gsmn": "GSMN", "gsmn-no-plan": "GSMN w/o J_plan", "gs-fpv": "GS-FPV", 
          "oracle": "Oracle (expert)", "avg-forward": "Avg # steps fwd", "random-point": "Random point",
          "random-landmark": "Random landmark"}
 KEYS = ("success", "landmark_success", "mean_distance", "median_distance")
+HEADER = ("| system | success % (ours) | success % (paper) | landmark % (ours) | landmark % (paper) "
+          "| mean dist m (ours) | mean (paper) | median m (ours) | median (paper) |", "|" + "---|" * 9)
 
 
 def _ours(summary: dict, i: int) -> str:
@@ -44,9 +46,7 @@ def table(results: list[dict], labels: dict[str, str], files: list[str] | None =
         counts = ", ".join(f"{f}: {len(r['env_ids'])}" for f, r in zip(files or range(len(results)), results,
                                                                         strict=True))
         raise ValueError(f"the files cover different environments ({counts}); evaluate them on the same ones")
-    header = ("| system | success % (ours) | success % (paper) | landmark % (ours) | landmark % (paper) "
-              "| mean dist m (ours) | mean (paper) | median m (ours) | median (paper) |")
-    lines = [header, "|" + "---|" * 9]
+    lines = list(HEADER)
     for r, file in zip(results, files or [None] * len(results), strict=True):
         system = r["system"]
         cells = [labels.get(file, labels.get(system, NAMES.get(system, system)))]

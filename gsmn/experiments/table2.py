@@ -840,10 +840,7 @@ def table_markdown(ship: Path) -> str:
         low, high = wilson(sum(e["success"] for e in eps), len(eps))
         drop = ""
         if control is not None and system.name != SYSTEMS[0].name:
-            by_env = {e["env_id"]: e["success"] for e in control["episodes"]}
-            paired = [(by_env[e["env_id"]], e["success"]) for e in eps if e["env_id"] in by_env]
-            fixed = sum(a and not c for c, a in paired)
-            broken = sum(c and not a for c, a in paired)
+            fixed, broken = paired(control["episodes"], eps)
             drop = (f"{control['summary']['success'] - s['success']:+.1f} ({fixed} / {broken}, "
                     f"p {sign_test(fixed, broken):.2g})")
         stages = ", ".join(str(sum(e.get("stage") == stage for e in eps)) for stage in STAGES)
@@ -852,22 +849,37 @@ def table_markdown(ship: Path) -> str:
     return "\n".join(lines)
 
 
+def paired(control: list[dict], other: list[dict]) -> tuple[int, int]:
+    """(fixed, broken) over the environments both flew: `other` succeeds where `control` fails, and the reverse."""
+    by_env = {e["env_id"]: e["success"] for e in control}
+    pairs = [(by_env[e["env_id"]], e["success"]) for e in other if e["env_id"] in by_env]
+    return sum(a and not c for c, a in pairs), sum(c and not a for c, a in pairs)
+
+
 def table1_markdown(ship: Path) -> str:
-    """Table 1's rows of the TABLE1 systems on the test environments, in docs/results.md's columns: ours (pruned)."""
-    lines = []
+    """Table 1's rows of the TABLE1 systems on the test environments, in docs/results.md's columns (ours and the
+    paper's, pruned in brackets), and each one's paired comparison with the control."""
+    from gsmn.analysis.table1 import HEADER, table
+
+    results, files, labels, rows = [], [], {}, []
     for name in TABLE1:
         path = ship / name / EVALUATIONS["test"][1]
         if not path.is_file():
-            lines.append(f"| {BY_NAME[name].label}, Table 2's recipe | {pending(ship / name, 'test')} |")
+            rows.append(f"| {BY_NAME[name].label}, Table 2's recipe | {pending(ship / name, 'test')} |" + " |" * 7)
             continue
-        s = json.loads(path.read_text())["summary"]
-        p = s["pruned"]
-        lines.append(f"| {BY_NAME[name].label}, Table 2's recipe (`checkpoints/table2/{name}`) | "
-                     f"{s['success']:.2f} ({p['success']:.2f}) | {s['landmark_success']:.2f} "
-                     f"({p['landmark_success']:.2f}) | {s['mean_distance']:.2f} ({p['mean_distance']:.2f}) | "
-                     f"{s['median_distance']:.2f} ({p['median_distance']:.2f}) | {s['count']} test environments |")
-    return "\n".join(["| system | success % | landmark % | mean dist m | median dist m | environments |",
-                      "|---|---|---|---|---|---|", *lines])
+        result = json.loads(path.read_text())
+        results.append({**result, "system": BY_NAME[name].kind})  # the paper's figures are keyed by model kind
+        files.append(name)
+        labels[name] = f"{BY_NAME[name].label}, Table 2's recipe (`checkpoints/table2/{name}`)"
+    lines = table(results, labels, files).split("\n") if results else list(HEADER)
+    lines += rows
+    if results and files[0] == TABLE1[0]:
+        for name, result in zip(files[1:], results[1:], strict=True):
+            fixed, broken = paired(results[0]["episodes"], result["episodes"])
+            lines.append(f"\n{BY_NAME[name].label} against {BY_NAME[TABLE1[0]].label}, paired over the same "
+                         f"{len(result['episodes'])} environments: {fixed} fixed / {broken} broken, sign test p "
+                         f"{sign_test(fixed, broken):.2g}")
+    return "\n".join(lines)
 
 
 # -- command line -----------------------------------------------------------------------------------------------
