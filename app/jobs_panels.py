@@ -62,7 +62,7 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
         bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
                     f'<span style="width:104px">{STAGE_TITLES.get(stage, "no maps recorded")}</span>'
                     f'<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
-                    f'<span style="display:block;width:{width:.0f}%;height:10px;background:{_STAGE_COLOURS[stage]};'
+                    f'<span style="display:block;width:{width:.0f}%;height:10px;background:{_STAGE_COLOURS.get(stage, "#999")};'
                     f'border-radius:2px"></span></span><b style="width:24px;text-align:right">{n}</b></div>')
     distance = s.get("mean_distance")
     distance = "n/a" if distance is None or math.isnan(distance) else f"{distance:.1f} m"
@@ -99,7 +99,8 @@ def region_summary(regions: dict[str, int] | None) -> str:
 
 
 _STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
-                  "goal_or_control": "#d35400", "unattributed": "#999"}
+                  "perception_or_grounding": "#5b5fc7", "grounding_or_goal": "#a0694a", "goal_or_control": "#d35400",
+                  "unattributed": "#999"}
 
 
 SORTS = {"flown order": None, "environment id": lambda r: r.env_id,
@@ -152,10 +153,12 @@ def episode_html(r: EpisodeRow, note: str) -> str:
     if not r.success and r.region_steps is not None:
         rows.append(("success region", region_text(r.region_steps, r.region_stop_p, ("<b>", "</b>"))))
     if a:
-        rows += [("perceived", ("yes" if a["perceived"] else "no") + (
+        rows += [("perceived", "seen; no trained reading (trained without J_percept)" if a["perceived"] is None
+                  else ("yes" if a["perceived"] else "no") + (
                     f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
                     if a["observed"] else " (never seen)")),
-                 ("grounded", ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
+                 ("grounded", "no trained reading (trained without J_ground)" if a.get("grounded", False) is None
+                  else ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
                      f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})"
                      if a.get("other_landmark") else ")")),
                  ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None

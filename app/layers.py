@@ -7,7 +7,9 @@
   relevance map; cells never observed are left transparent on the ground.
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
 - goal_robot: the same on the robot-frame goal map the controller reads (drone at the centre, facing up).
-  A model trained without J_plan has no trained goal head; its goal layers show channel 0 in both modes.
+  A model trained without J_plan has no trained goal head; its goal layers show channel 0 in both modes. Likewise
+  without J_ground the relevance layer shows the relevance map's channel 0, and without J_percept the semantic
+  layer the semantic map's channel 0 (an untrained head's reading says nothing; `gsmn.attribution.trained_heads`).
 
 The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
 model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
@@ -54,6 +56,8 @@ FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
 NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
+NO_GROUNDING_HEAD = "relevance channel 0 (trained without J_ground: no P(named))"
+NO_PERCEPTION_HEAD = "semantic channel 0 (trained without J_percept: no landmark classes)"
 
 
 @dataclass(frozen=True)
@@ -124,25 +128,36 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         palette = name_palette(heads.class_names, names)
     else:
         names, palette = list(heads.class_names), heads.palette
-    semantic = Layer("semantic", TITLES["semantic"],
-                     semantic_rgb(classes, confidence, observed, palette, len(heads.class_names)),
-                     observed.astype(np.float32), semantic_legend_html(classes, observed, palette, names), confidence)
-    goal_title = None
-    if value_mode == "probability" and not heads.goal_trained:  # no J_plan: show what the controller reads
-        relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
-        goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
-        labels, goal_title = ("P(named)", NO_GOAL_HEAD, NO_GOAL_HEAD), "Goal: channel 0 (no goal head, no J_plan)"
-    elif value_mode == "probability":
-        relevance = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
-        goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
-        goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
-        labels = ("P(named)", "P(goal)", "P(goal)")
+    if heads.perception_trained:
+        semantic = Layer("semantic", TITLES["semantic"],
+                         semantic_rgb(classes, confidence, observed, palette, len(heads.class_names)),
+                         observed.astype(np.float32), semantic_legend_html(classes, observed, palette, names),
+                         confidence)
+    else:  # no J_percept: the head's classes say nothing; show the map itself
+        semantic = _scalar_layer("semantic", np.asarray(semantic_w[0], np.float32), observed.astype(np.float32),
+                                 "frame", NO_PERCEPTION_HEAD, "Semantic map: channel 0 (no perception head, no J_percept)")
+    relevance_title = goal_title = None
+    if value_mode == "probability":
+        if heads.grounding_trained:
+            relevance, relevance_label = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b), \
+                "P(named)"
+        else:  # no J_ground: show what the goal filter reads
+            relevance, relevance_label = np.asarray(relevance_w[0], np.float32), NO_GROUNDING_HEAD
+            relevance_title = "Relevance: channel 0 (no grounding head, no J_ground)"
+        if heads.goal_trained:
+            goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
+            goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
+            labels = (relevance_label, "P(goal)", "P(goal)")
+        else:  # no J_plan: show what the controller reads
+            goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
+            labels, goal_title = (relevance_label, NO_GOAL_HEAD, NO_GOAL_HEAD), "Goal: channel 0 (no goal head, no J_plan)"
     else:
         relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
         labels = ("relevance channel 0", "goal channel 0", "goal channel 0")
     ones = np.ones(goal.shape, np.float32)
     out = {"semantic": semantic,
-           "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0]),
+           "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0],
+                                      relevance_title),
            "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1], goal_title),
            "goal_robot": _scalar_layer("goal_robot", goal_robot, np.ones(goal_robot.shape, np.float32), range_mode,
                                        labels[2], frame="robot")}
@@ -186,8 +201,8 @@ class CellReport:
     x: float  # the cell's centre (m)
     y: float
     observed: bool
-    classes: tuple[tuple[str, float], ...]  # the perception head's three most likely landmarks
-    p_named: float
+    classes: tuple[tuple[str, float], ...]  # the perception head's three most likely landmarks (none: untrained)
+    p_named: float  # nan: the model has no trained grounding head
     p_goal: float  # nan: the model has no trained goal head
     truth: str | None  # the landmark whose radius covers the cell centre, if any
 
@@ -204,9 +219,11 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
     top = np.argsort(-probs)[:3]
     cx, cy = cell_centre(r, c, world.field_size, n)
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
-    p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0]
+    p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0] \
+        if heads.grounding_trained else float("nan")
     p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0] \
         if heads.goal_trained else float("nan")
     return CellReport(r, c, cx, cy, bool(np.abs(feature).max() > 1e-6),
-                      tuple((heads.class_names[k], float(probs[k])) for k in top), float(p_named), float(p_goal),
+                      tuple((heads.class_names[k], float(probs[k])) for k in top) if heads.perception_trained else (),
+                      float(p_named), float(p_goal),
                       truth)

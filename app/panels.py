@@ -328,12 +328,15 @@ def actions_data(episode: Episode, cursor: int, success_radius: float = 6.0) -> 
 def inspector_markdown(report: CellReport | None, step: int) -> str:
     if report is None:
         return "That point is outside the map."
-    classes = ", ".join(f"{html.escape(name)} {p:.2f}" for name, p in report.classes)
+    classes = ", ".join(f"{html.escape(name)} {p:.2f}" for name, p in report.classes) or \
+        "no landmark classes (trained without J_percept)"
     seen = "" if report.observed else " (not seen yet)"
     truth = f"**{html.escape(report.truth)}**" if report.truth else "open ground"
     goal = "no P(goal) (trained without J_plan)" if math.isnan(report.p_goal) else f"P(goal) **{report.p_goal:.2f}**"
+    named = "no P(named) (trained without J_ground)" if math.isnan(report.p_named) else \
+        f"P(named) **{report.p_named:.2f}**"
     return (f"**Cell ({report.row}, {report.col})** at x {report.x:.1f} m, y {report.y:.1f} m, step {step}{seen}: "
-            f"perception {classes}; P(named) **{report.p_named:.2f}**, {goal}; "
+            f"perception {classes}; {named}, {goal}; "
             f"truly there: {truth}.")
 
 

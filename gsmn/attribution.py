@@ -14,8 +14,13 @@ traced to the first stage that went wrong, using the maps the model held when th
                 never stopped. Where the drone's final heading is known, the reason says which way: it stopped
                 short (the peak ahead of it), overshot (behind it), or passed beside it (to its left or right).
 
-A model trained without J_plan ("gsmn-no-plan") has a goal head that was never trained, so its P(goal) says
-nothing: for it the last two stages cannot be told apart, and a grounded failure is "goal_or_control".
+A head trained without its objective (the ablations of Table 2: without J_percept, J_ground or J_plan) is its
+initialisation, so its reading says nothing, and the stage it judges cannot be told apart from the next one: its
+failures join the next judged stage's as one merged stage. Without J_percept a seen landmark's recognition is not
+judged (a failure the grounding head finds is "perception_or_grounding"); without J_ground its grounding is not
+(a misplaced goal is "grounding_or_goal"); without J_plan the goal is not (a grounded failure is
+"goal_or_control"). "Never seen" needs no head and is always perception. Which heads were trained is read from the
+model's own configuration (`trained_heads`).
 
 `attribute` is a pure function of those maps, the head weights, the WorldSpec and the instruction; it is unit
 tested on hand-made maps. `TraceRecorder` wraps a GSMN policy during evaluation to keep the final maps and a few
@@ -39,22 +44,25 @@ from gsmn.task.metrics import side_of
 from gsmn.world.catalogue import CATALOGUE
 from gsmn.world.spec import WorldSpec, world_for_env
 
-STAGES = ("perception", "grounding", "goal", "control", "goal_or_control")
+PIPELINE = ("perception", "grounding", "goal", "control")  # the stages in the order the model runs them
+MERGED = ("perception_or_grounding", "grounding_or_goal", "goal_or_control")  # with one untrained head
+STAGES = PIPELINE + MERGED
 BEARINGS = ("ahead", "behind", "left", "right")  # 90-degree sectors around the drone's heading
 STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
-                "control": "control", "goal_or_control": "goal or control"}
+                "control": "control", "perception_or_grounding": "perception or grounding",
+                "grounding_or_goal": "grounding or goal", "goal_or_control": "goal or control"}
 
 
 def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:
-    """The stages to list for these counts: "goal_or_control" only where some count has it (a model trained
-    without J_plan), so tables of GSMN failures keep their four rows."""
-    return tuple(k for k in STAGES if k != "goal_or_control" or any(c.get(k, 0) for c in counts))
+    """The stages to list for these counts: a merged stage only where some count has it (a model with an
+    untrained head), so tables of GSMN failures keep their four rows."""
+    return tuple(k for k in STAGES if k in PIPELINE or any(c.get(k, 0) for c in counts))
 
 
 @dataclass(frozen=True)
 class Heads:
-    """The auxiliary heads as arrays, weight (K, C) and bias (K,); `goal_trained` is False for a model trained
-    without J_plan, whose goal head is its initialisation."""
+    """The auxiliary heads as arrays, weight (K, C) and bias (K,); `*_trained` is False for a head whose objective
+    the model was trained without (J_percept, J_ground, J_plan), which is its initialisation."""
 
     perception_w: np.ndarray
     perception_b: np.ndarray
@@ -63,6 +71,8 @@ class Heads:
     goal_w: np.ndarray
     goal_b: np.ndarray
     goal_trained: bool = True
+    perception_trained: bool = True
+    grounding_trained: bool = True
 
     @classmethod
     def of(cls, model) -> Heads:
@@ -74,13 +84,26 @@ class Heads:
         def arr(t) -> np.ndarray:
             return t.detach().cpu().float().numpy().copy()
 
+        trained = trained_heads(model)
         return cls(arr(h.perception.weight), arr(h.perception.bias), arr(h.grounding.weight),
-                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias), goal_head_trained(model))
+                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias), trained["goal"],
+                   trained["perception"], trained["grounding"])
+
+
+def trained_heads(model) -> dict[str, bool]:
+    """Which of a GSMN's auxiliary heads were trained ("perception", "grounding", "goal"): those whose objective
+    its configuration switches on with a weight above 0 ("gsmn-no-plan" switches J_plan off itself)."""
+    from gsmn.model.losses import objectives_for
+
+    loss = objectives_for(model.kind, model.config.loss)
+    return {"perception": loss.perception and loss.perception_weight > 0,
+            "grounding": loss.grounding and loss.grounding_weight > 0,
+            "goal": model.heads.goal is not None and loss.goal and loss.goal_weight > 0}
 
 
 def goal_head_trained(model) -> bool:
-    """Whether the model's goal head was trained (J_plan on): not for "gsmn-no-plan"."""
-    return model.heads.goal is not None and model.kind != "gsmn-no-plan"
+    """Whether the model's goal head was trained (J_plan on): not for "gsmn-no-plan" or `loss.goal false`."""
+    return trained_heads(model)["goal"]
 
 
 @dataclass(frozen=True)
@@ -101,11 +124,11 @@ class Attribution:
     landmark_row: int  # the named landmark's centre cell
     landmark_col: int
     observed: bool  # the camera covered that cell at some step
-    perceived: bool
+    perceived: bool | None  # None: seen, but the model has no trained perception head to read it
     top_class: str | None  # the perception head's most likely landmark there (None: never observed)
     p_landmark_class: float  # the perception head's probability of the landmark's own class there
     landmark_class_rank: int  # 1 = most likely (ties share a rank)
-    grounded: bool
+    grounded: bool | None  # None: the model has no trained grounding head
     p_named: float  # P(named) at the landmark's cell
     p_named_other: float | None  # the highest P(named) at another landmark's cell (None: no other landmark)
     other_landmark: str | None  # ... and that landmark's name
@@ -167,6 +190,26 @@ def goal_peak(goal_map_w: np.ndarray, heads: Heads) -> tuple[int, int, float]:
     return k // p.shape[1], k % p.shape[1], float(p.flat[k])
 
 
+_UNJUDGED = {  # what a merged stage's reason adds, per untrained head
+    "perception": "Trained without J_percept, this model's perception head has no trained reading: a landmark not "
+                  "recognised and one not grounded look alike.",
+    "grounding": "Trained without J_ground, this model's grounding head has no trained reading: a landmark not "
+                 "grounded and a misplaced goal look alike.",
+    "goal": "Trained without J_plan, this model's goal map has no trained reading: a misplaced goal and poor control "
+            "look alike."}
+
+
+def merged_stage(stage: str, unjudged: tuple[str, ...]) -> str:
+    """`stage` joined with the stages just before it that a model's untrained heads cannot judge ("control" after
+    an unjudged "goal" -> "goal_or_control")."""
+    parts = [stage]
+    for previous in reversed(PIPELINE[:PIPELINE.index(stage)]):
+        if previous not in unjudged:
+            break
+        parts.insert(0, previous)
+    return "_or_".join(parts)
+
+
 # -- the attribution ----------------------------------------------------------------------------------------------
 def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Instruction,
               final_xy: tuple[float, float], stopped: bool, success: bool, success_radius: float = 6.0,
@@ -188,6 +231,8 @@ def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Inst
     rank = 1 + int((probs > probs[target.class_id]).sum())  # ties share a rank
     top = CATALOGUE[int(order[0])].noun_phrase if observed else None
     perceived = observed and top == target.noun_phrase  # models sharing a name (4 palm trees) count as right
+    if observed and not heads.perception_trained:
+        perceived = None  # no trained reading: the next stage's verdict covers it
 
     # grounding: P(named) at its cell against every other landmark's cell
     p_named_map = positive_probability(maps.relevance_map_w, heads.grounding_w, heads.grounding_b)
@@ -195,7 +240,7 @@ def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Inst
     others = [(float(p_named_map[cell_of(lm.x, lm.y, F, n)]), lm.noun_phrase) for lm in world.landmarks
               if lm.noun_phrase != target.noun_phrase]
     best_other = max(others, default=None)
-    grounded = p_named > (best_other[0] if best_other else 0.5)
+    grounded = p_named > (best_other[0] if best_other else 0.5) if heads.grounding_trained else None
 
     # goal: would stopping at the peak of P(goal) have succeeded?
     gr, gc, gp = goal_peak(maps.goal_map_w, heads)
@@ -209,25 +254,27 @@ def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Inst
     peak_bearing = None if final_yaw is None else bearing(final_xy, final_yaw, (gx, gy))
 
     name = target.noun_phrase
+    unjudged = tuple(stage for stage, verdict in (("perception", perceived), ("grounding", grounded),
+                                                  ("goal", goal_right)) if verdict is None)
+    seen = "Perceived" if perceived else "Seen"  # as far as the trained heads can tell
+    so_far = "Grounded" if grounded else seen
     if success:
         stage, reason = None, "Success."
     elif not observed:
         stage, reason = "perception", f"The camera never covered the {name}'s cell: it was never seen."
-    elif not perceived:
+    elif perceived is False:
         stage, reason = "perception", (f"Seen but not recognised: the perception head reads the {name}'s cell as "
                                        f"{top} (the {name} ranks {rank}, p {probs[target.class_id]:.2f}).")
-    elif not grounded:
+    elif grounded is False:
         against = f"{best_other[0]:.2f} at the {best_other[1]}" if best_other else "under 0.5"
-        stage, reason = "grounding", f"Perceived but not grounded: P(named) {p_named:.2f} at the {name}, {against}."
+        stage, reason = "grounding", f"{seen} but not grounded: P(named) {p_named:.2f} at the {name}, {against}."
+    elif goal_right is False:
+        stage, reason = "goal", (f"{so_far}, but the goal map peaks {math.dist((gx, gy), instruction.goal):.1f} m "
+                                 f"from the true goal, where stopping would fail.")
     elif goal_right is None:
         how = "stopped" if stopped else "never said STOP, and ended"
-        stage, reason = "goal_or_control", (
-            f"Grounded, but the drone {how} {math.dist(final_xy, instruction.goal):.1f} m from the goal. Trained "
-            f"without J_plan, this model's goal map has no trained reading: a misplaced goal and poor control look "
-            f"alike.")
-    elif not goal_right:
-        stage, reason = "goal", (f"Grounded, but the goal map peaks {math.dist((gx, gy), instruction.goal):.1f} m "
-                                 f"from the true goal, where stopping would fail.")
+        stage, reason = "control", f"{so_far}, but the drone {how} {math.dist(final_xy, instruction.goal):.1f} m " \
+                                   f"from the goal."
     else:
         if not stopped:
             how = "never said STOP"
@@ -236,6 +283,9 @@ def attribute(maps: FinalMaps, heads: Heads, world: WorldSpec, instruction: Inst
         else:
             how = _MISSED[peak_bearing].format(d=final_to_peak)
         stage, reason = "control", f"The goal map was right, but the drone {how}."
+    if stage is not None:  # a failure an untrained head may hide is also the stages before it that it cannot judge
+        stage = merged_stage(stage, unjudged)
+        reason += "".join(f" {_UNJUDGED[s]}" for s in stage.split("_or_") if s in unjudged)
     return Attribution(
         stage=stage, reason=reason, landmark_row=r, landmark_col=c, observed=observed, perceived=perceived,
         top_class=top, p_landmark_class=float(probs[target.class_id]), landmark_class_rank=rank, grounded=grounded,
@@ -259,7 +309,7 @@ def attribute_record(record: dict, trace: ModelTrace, heads: Heads, config: RunC
     a = attribute(trace.maps, heads, world, instruction, (float(record["final_x"]), float(record["final_y"])),
                   bool(record["stopped"]), bool(record["success"]), config.task.success_radius,
                   None if final_yaw is None else float(final_yaw))
-    return replace(a, failed_from=failed_from(trace.truth, heads.goal_trained))
+    return replace(a, failed_from=failed_from(trace.truth, heads))
 
 
 def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:
@@ -267,7 +317,7 @@ def count_stages(attributions: list[Attribution | None]) -> dict[str, int]:
     counts = dict.fromkeys(STAGES, 0)
     for a in attributions:
         if a is not None and a.stage is not None:
-            counts[a.stage] += 1
+            counts[a.stage] = counts.get(a.stage, 0) + 1  # a stage merged over two untrained heads is not in STAGES
     return counts
 
 
@@ -292,8 +342,9 @@ class ModelTrace:
 FIGURE_STAGES = {"perception": "perception", "relevance": "grounding", "goal": "goal"}
 
 
-def failed_from(truth: np.ndarray | None, goal_trained: bool = True) -> dict[str, int | None] | None:
-    """The step each stage went wrong for good, from a trace's per-step figures, by stage name."""
+def failed_from(truth: np.ndarray | None, heads: Heads | None = None) -> dict[str, int | None] | None:
+    """The step each stage went wrong for good, from a trace's per-step figures, by stage name; without the stages
+    whose head `heads` says was not trained."""
     if truth is None or len(truth) == 0:
         return None
     from gsmn.analysis.truth import Agreement, first_failures
@@ -305,8 +356,11 @@ def failed_from(truth: np.ndarray | None, goal_trained: bool = True) -> dict[str
                for p, r, g, share in np.asarray(truth, np.float64)]
     steps = first_failures(figures)
     out = {FIGURE_STAGES[k]: v for k, v in steps.items()}
-    if not goal_trained:  # its P(goal) says nothing (no J_plan)
-        del out["goal"]
+    if heads is not None:  # an untrained head's figure says nothing
+        for stage, trained in (("perception", heads.perception_trained), ("grounding", heads.grounding_trained),
+                               ("goal", heads.goal_trained)):
+            if not trained:
+                out.pop(stage, None)
     return out
 
 

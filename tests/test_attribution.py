@@ -25,9 +25,11 @@ from gsmn.attribution import (
     cell_of,
     count_stages,
     load_trace,
+    merged_stage,
     reported_stages,
     save_trace,
     trace_path,
+    trained_heads,
 )
 from gsmn.config import preset, with_overrides
 from gsmn.task.rollout import task_for_env
@@ -164,9 +166,62 @@ def test_without_a_trained_goal_head_goal_and_control_are_one_stage():
     assert run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})).stage == "grounding"  # earlier stages stay
     ok = attribute(maps_where(), untrained, WORLD, INSTRUCTION, tuple(INSTRUCTION.goal), True, True)
     assert ok.stage is None
-    gsmn_counts = dict.fromkeys(STAGES, 1) | {"goal_or_control": 0}
+    gsmn_counts = dict.fromkeys(STAGES, 0) | dict.fromkeys(("perception", "grounding", "goal", "control"), 1)
     assert reported_stages(gsmn_counts) == ("perception", "grounding", "goal", "control")  # tables keep 4 rows
     assert reported_stages(gsmn_counts, {"goal_or_control": 3})[-1] == "goal_or_control"
+
+
+def test_an_untrained_head_merges_its_stage_with_the_next_judged_one():
+    """Without J_percept a seen landmark's recognition is not judged and the grounding head's verdict covers it;
+    without J_ground grounding is not judged and the goal head's verdict covers it. "Never seen" needs no head."""
+    no_percept = dataclasses.replace(heads(), perception_trained=False)
+    seen_as_car = attribute(maps_where(perceive="car"), no_percept, WORLD, INSTRUCTION, (20.0, 5.0), True, False)
+    assert seen_as_car.perceived is None and seen_as_car.stage == "control"  # grounded and goal right after all
+    not_grounded = attribute(maps_where(perceive="car", relevance={"pumpkin": 1.0, "globe": 2.5}), no_percept,
+                             WORLD, INSTRUCTION, (20.0, 5.0), True, False)
+    assert not_grounded.stage == "perception_or_grounding" and not_grounded.reason.startswith("Seen but not grounded")
+    assert "J_percept" in not_grounded.reason
+    never = attribute(maps_where(perceive=None), no_percept, WORLD, INSTRUCTION, (20.0, 5.0), True, False)
+    assert never.stage == "perception" and never.perceived is False and "J_percept" not in never.reason
+
+    no_ground = dataclasses.replace(heads(), grounding_trained=False)
+    wrong_side = (TARGET.x + 3.0, TARGET.y - 3.0)
+    for relevance in ({"pumpkin": 3.0}, {"pumpkin": 1.0, "globe": 2.5}):  # grounded or not: not read
+        a = attribute(maps_where(relevance=relevance, goal_xy=wrong_side), no_ground, WORLD, INSTRUCTION,
+                      (20.0, 5.0), True, False)
+        assert a.grounded is None and a.stage == "grounding_or_goal" and "J_ground" in a.reason
+        assert a.reason.startswith("Perceived, but the goal map peaks")
+    right_goal = attribute(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5}), no_ground, WORLD, INSTRUCTION,
+                           (25.0, 5.0), True, False)
+    assert right_goal.stage == "control" and "J_ground" not in right_goal.reason
+    assert attribute(maps_where(perceive="car"), no_ground, WORLD, INSTRUCTION, (20.0, 5.0), True,
+                     False).stage == "perception"  # a trained perception head still judges its stage
+    assert merged_stage("control", ("grounding", "goal")) == "grounding_or_goal_or_control"
+    assert count_stages([dataclasses.replace(right_goal, stage="grounding_or_goal_or_control")])[
+        "grounding_or_goal_or_control"] == 1
+    counts = dict.fromkeys(STAGES, 1) | {"goal_or_control": 0, "grounding_or_goal": 0}
+    assert reported_stages(counts) == ("perception", "grounding", "goal", "control", "perception_or_grounding")
+    assert set(STAGE_TITLES) == set(STAGES)
+
+
+def test_which_heads_a_model_trained_is_read_from_its_configuration():
+    from gsmn.config import LossConfig, RunConfig
+    from gsmn.model import build_model
+
+    def trained(kind: str = "gsmn", **loss) -> dict[str, bool]:
+        config = dataclasses.replace(preset("tiny"), loss=dataclasses.replace(LossConfig(), **loss))
+        assert isinstance(config, RunConfig)
+        model = build_model(kind, config)
+        h = Heads.of(model)
+        assert (h.perception_trained, h.grounding_trained, h.goal_trained) == tuple(trained_heads(model).values())
+        return trained_heads(model)
+
+    assert trained() == {"perception": True, "grounding": True, "goal": True}
+    assert trained("gsmn-no-plan") == {"perception": True, "grounding": True, "goal": False}
+    assert trained(grounding=False) == {"perception": True, "grounding": False, "goal": True}
+    assert trained(perception=False) == {"perception": False, "grounding": True, "goal": True}
+    assert trained(goal=False)["goal"] is False and trained(language=False) == trained()
+    assert trained(grounding_weight=0.0)["grounding"] is False
 
 
 def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
@@ -174,7 +229,7 @@ def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
     assert ok.stage is None and ok.goal_right and ok.final_to_peak < 1.0
     stages = [run(maps_where(perceive=None)), run(maps_where(relevance={"pumpkin": 1.0, "globe": 2.5})),
               run(maps_where()), ok, None]
-    assert count_stages(stages) == {"perception": 1, "grounding": 1, "goal": 0, "control": 1, "goal_or_control": 0}
+    assert count_stages(stages) == dict.fromkeys(STAGES, 0) | {"perception": 1, "grounding": 1, "control": 1}
     assert type(ok).from_dict(json.loads(json.dumps(ok.to_dict()))) == ok
 
 

@@ -130,6 +130,34 @@ def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
     assert "no P(goal)" in inspector_markdown(report, 0)
 
 
+def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_themselves():
+    """Trained without J_ground, the relevance layer shows the relevance map's channel 0 and the inspector gives no
+    P(named); without J_percept, the semantic layer shows the semantic map's channel 0 and no landmark classes."""
+    semantic = np.full((32, 32, 32), 0.1, np.float16)
+    semantic[0, 5, 6] = 3.0
+    relevance = np.zeros((3, 32, 32), np.float32)
+    relevance[0, 5, 6], relevance[1, 5, 6] = 9.0, -40.0
+    goal, goal_r = np.zeros((2, 32, 32), np.float32), np.zeros((2, 64, 64), np.float32)
+    world = world_for_env(70, preset("tiny").world)
+    x, y = world.landmarks[0].x, world.landmarks[0].y
+
+    no_ground = dataclasses.replace(_heads(), grounding_trained=False)
+    layers = build_layers(semantic, relevance, goal, goal_r, no_ground, "probability", "fixed")
+    assert layers["relevance"].values[5, 6] == 9.0 and "J_ground" in layers["relevance"].title
+    assert "J_ground" in layers["relevance"].legend_html and "P(goal)" in layers["goal"].legend_html
+    report = inspect_cell(x, y, semantic, relevance, goal, no_ground, world)
+    assert math.isnan(report.p_named) and report.classes and "no P(named)" in inspector_markdown(report, 0)
+
+    no_percept = dataclasses.replace(_heads(), perception_trained=False)
+    layers = build_layers(semantic, relevance, goal, goal_r, no_percept, "probability", "fixed")
+    assert layers["semantic"].values[5, 6] == 3.0 and "J_percept" in layers["semantic"].title
+    assert "P(named)" in layers["relevance"].legend_html
+    report = inspect_cell(x, y, semantic, relevance, goal, no_percept, world)
+    assert report.classes == () and "J_percept" in inspector_markdown(report, 0)
+    trained = build_layers(semantic, relevance, goal, goal_r, _heads(), "probability", "fixed")
+    assert trained["semantic"].title == "Semantic map: most likely landmark" and "J_" not in trained["relevance"].title
+
+
 def test_positive_probability_is_the_binary_head_softmax():
     maps = np.zeros((3, 2, 2), np.float32)
     maps[0, 0, 0] = 10.0

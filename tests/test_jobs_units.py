@@ -428,3 +428,20 @@ def test_a_failure_card_says_from_which_step_each_stage_went_wrong():
     assert "perceived: right at the end" in card
     older = {k: v for k, v in a.to_dict().items() if k != "failed_from"}  # recorded before the figures were
     assert "went wrong" not in episode_html(episode(1, 0, 70, stage="goal", attribution=older), "")
+
+
+def test_a_failure_card_of_an_ablation_says_which_heads_have_no_trained_reading():
+    from gsmn.attribution import Attribution
+
+    a = Attribution(stage="grounding_or_goal", reason="Perceived, but the goal map peaks 9.0 m from the true goal.",
+                    landmark_row=3, landmark_col=4, observed=True, perceived=True, top_class="box",
+                    p_landmark_class=0.6, landmark_class_rank=1, grounded=None, p_named=0.5, p_named_other=0.5,
+                    other_landmark="tank", goal_right=False, goal_peak_x=1.0, goal_peak_y=2.0, goal_peak_p=0.4,
+                    goal_peak_error=9.0, stopped=True, final_to_peak=0.5)
+    card = episode_html(episode(1, 0, 70, stage=a.stage, attribution=a.to_dict()), "")
+    assert "grounding or goal" in card and "no trained reading (trained without J_ground)" in card
+    assert "perceived</td><td>yes (read as box" in card
+    b = dataclasses.replace(a, stage="perception_or_grounding", perceived=None, grounded=False)
+    card = episode_html(episode(1, 0, 70, stage=b.stage, attribution=b.to_dict()), "")
+    assert "perception or grounding" in card and "seen; no trained reading (trained without J_percept)" in card
+    assert "grounded</td><td>no (P(named) 0.50" in card

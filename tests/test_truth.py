@@ -3,11 +3,13 @@ world: a perfect map scores 1, a wrong one low; and when each stage went wrong f
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from gsmn.analysis.truth import Agreement, agreement, auc, first_failures, truth_maps
-from gsmn.attribution import Heads, cell_centre
+from gsmn.attribution import Heads, cell_centre, failed_from
 from gsmn.config import preset
 from gsmn.task.metrics import success
 from gsmn.task.rollout import task_for_env
@@ -84,6 +86,16 @@ def test_a_perfect_map_scores_one_and_a_wrong_one_low(case):
     untrained = Heads(*(getattr(heads, f) for f in ("perception_w", "perception_b", "grounding_w", "grounding_b",
                                                      "goal_w", "goal_b")), goal_trained=False)
     assert agreement(right, relevance, goal, truth, untrained).goal is None
+    no_percept = dataclasses.replace(heads, perception_trained=False)
+    no_ground = dataclasses.replace(heads, grounding_trained=False)
+    assert agreement(right, relevance, goal, truth, no_percept).perception is None
+    assert agreement(right, relevance, goal, truth, no_percept).relevance == 1.0
+    assert agreement(right, relevance, goal, truth, no_ground).relevance is None
+    assert agreement(right, relevance, goal, truth, no_ground).perception == 1.0
+    figures = np.array([[1.0, 1.0, 0.9, 0.03], [0.0, 0.0, 0.0, 0.03]], np.float32)
+    assert set(failed_from(figures)) == {"perception", "grounding", "goal"}
+    assert set(failed_from(figures, no_ground)) == {"perception", "goal"}
+    assert set(failed_from(figures, no_percept)) == {"grounding", "goal"}
 
 
 def test_auc_counts_ties_half():

@@ -20,10 +20,11 @@ The agreement figures, each in [0, 1], 1 for a perfect map:
   calibrated (a well-placed peak of 0.3 is common); an IoU at 0.5 would call such a map empty. The AUC reads the
   ranking only, which is what the goal filter downstream uses. Unseen cells are left out: the map holds nothing
   there.
-- goal: the share of the goal head's P(goal), summed over the field, that lies inside the success region. None for
-  a model without a trained goal head (trained without J_plan).
+- goal: the share of the goal head's P(goal), summed over the field, that lies inside the success region.
 
-Each is None where it is undefined (no seen landmark cell yet, no footprint cell or no other cell seen).
+Each is None where it is undefined (no seen landmark cell yet, no footprint cell or no other cell seen), and where
+the model's head for it was never trained (the perception figure without J_percept, the relevance figure without
+J_ground, the goal figure without J_plan: `gsmn.attribution.trained_heads`).
 `first_failures` turns the figures over an episode into the step at which each stage first fell below its
 threshold (`gsmn.attribution` names the stage that failed; this says when).
 """
@@ -92,11 +93,12 @@ class Agreement:
 
 
 def perception_accuracy(semantic_w: np.ndarray, truth: TruthMaps, heads: Heads) -> tuple[float | None, int]:
-    """(accuracy, cells) over the seen landmark cells (see the module docstring)."""
+    """(accuracy, cells) over the seen landmark cells (see the module docstring); accuracy None without a trained
+    perception head."""
     seen = observed_cells(semantic_w) & (truth.class_id >= 0)
     count = int(seen.sum())
-    if count == 0:
-        return None, 0
+    if count == 0 or not heads.perception_trained:
+        return None, count
     features = semantic_w[:, seen].astype(np.float32)  # (C, m)
     logits = np.einsum("kc,cm->km", heads.perception_w.astype(np.float32), features) \
         + heads.perception_b.astype(np.float32)[:, None]
@@ -124,6 +126,8 @@ def auc(scores_positive: np.ndarray, scores_negative: np.ndarray) -> float | Non
 
 
 def relevance_auc(semantic_w: np.ndarray, relevance_w: np.ndarray, truth: TruthMaps, heads: Heads) -> float | None:
+    if not heads.grounding_trained:
+        return None
     seen = observed_cells(semantic_w)
     p_named = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b)
     return auc(p_named[seen & truth.named], p_named[seen & ~truth.named])

@@ -819,16 +819,26 @@ def pending(ship: Path, split: str = "dev") -> str:
     return "not yet (trained, not evaluated)" if trained(stage) else f"not yet ({training_stage(stage)})"
 
 
+def _stage_counts(episodes: list[dict]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for e in episodes:
+        if e.get("stage"):
+            counts[e["stage"]] = counts.get(e["stage"], 0) + 1
+    return counts
+
+
 def table_markdown(ship: Path) -> str:
     """Table 2 from the kept evaluations: ours beside the paper's, each ablation's drop from the control with a
     paired sign test over the same environments, and the failures' attribution counts."""
-    from gsmn.attribution import STAGES
+    from gsmn.attribution import reported_stages
 
     found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())
              for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+    counts = {name: _stage_counts(result["episodes"]) for name, result in found.items()}
+    stages = reported_stages(*counts.values())  # the merged stages of untrained heads only where some row has one
     lines = ["| system | success % (95 % interval) | landmark % | mean dist (m) | median dist (m) | paper: success, "
              "landmark, mean, median | drop from control (fixed / broken, sign test p) | failures by stage ("
-             + ", ".join(STAGES) + ") |", "|---|---|---|---|---|---|---|---|"]
+             + ", ".join(stages) + ") |", "|---|---|---|---|---|---|---|---|"]
     control = found.get(SYSTEMS[0].name)
     for system in SYSTEMS:
         paper = " / ".join(f"{v:.2f}" for v in PAPER[system.name])
@@ -843,9 +853,9 @@ def table_markdown(ship: Path) -> str:
             fixed, broken = paired(control["episodes"], eps)
             drop = (f"{control['summary']['success'] - s['success']:+.1f} ({fixed} / {broken}, "
                     f"p {sign_test(fixed, broken):.2g})")
-        stages = ", ".join(str(sum(e.get("stage") == stage for e in eps)) for stage in STAGES)
+        by_stage = ", ".join(str(counts[system.name].get(stage, 0)) for stage in stages)
         lines.append(f"| {system.label} | {s['success']:.1f} ({low:.1f}-{high:.1f}) | {s['landmark_success']:.1f} | "
-                     f"{s['mean_distance']:.2f} | {s['median_distance']:.2f} | {paper} | {drop} | {stages} |")
+                     f"{s['mean_distance']:.2f} | {s['median_distance']:.2f} | {paper} | {drop} | {by_stage} |")
     return "\n".join(lines)
 
 
