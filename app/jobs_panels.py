@@ -62,7 +62,8 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
         bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
                     f'<span style="width:104px">{STAGE_TITLES.get(stage, "no maps recorded")}</span>'
                     f'<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
-                    f'<span style="display:block;width:{width:.0f}%;height:10px;background:{_STAGE_COLOURS.get(stage, "#999")};'
+                    f'<span style="display:block;width:{width:.0f}%;height:10px;'
+                    f'background:{_STAGE_COLOURS.get(stage, "#999")};'
                     f'border-radius:2px"></span></span><b style="width:24px;text-align:right">{n}</b></div>')
     distance = s.get("mean_distance")
     distance = "n/a" if distance is None or math.isnan(distance) else f"{distance:.1f} m"

@@ -135,7 +135,8 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
                          confidence)
     else:  # no J_percept: the head's classes say nothing; show the map itself
         semantic = _scalar_layer("semantic", np.asarray(semantic_w[0], np.float32), observed.astype(np.float32),
-                                 "frame", NO_PERCEPTION_HEAD, "Semantic map: channel 0 (no perception head, no J_percept)")
+                                 "frame", NO_PERCEPTION_HEAD,
+                                 "Semantic map: channel 0 (no perception head, no J_percept)")
     relevance_title = goal_title = None
     if value_mode == "probability":
         if heads.grounding_trained:
@@ -150,7 +151,8 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
             labels = (relevance_label, "P(goal)", "P(goal)")
         else:  # no J_plan: show what the controller reads
             goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
-            labels, goal_title = (relevance_label, NO_GOAL_HEAD, NO_GOAL_HEAD), "Goal: channel 0 (no goal head, no J_plan)"
+            labels = (relevance_label, NO_GOAL_HEAD, NO_GOAL_HEAD)
+            goal_title = "Goal: channel 0 (no goal head, no J_plan)"
     else:
         relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
         labels = ("relevance channel 0", "goal channel 0", "goal channel 0")
