@@ -105,8 +105,10 @@ class ModelStep(BaseModel):
 
 
 class TruthFigures(BaseModel):
-    perception: float | None = Field(description="share of the seen landmark cells whose most likely class is right")
-    relevance: float | None = Field(description="AUC of P(named) for the named landmark's footprint, over seen cells")
+    perception: float | None = Field(description="share of the seen landmark cells whose most likely class is right "
+                                     "(null: nothing seen yet, or no trained perception head)")
+    relevance: float | None = Field(description="AUC of P(named) for the named landmark's footprint, over seen cells "
+                                    "(null: undefined, or no trained grounding head)")
     goal: float | None = Field(description="share of P(goal) inside the success region (null: no trained goal head)")
 
 
@@ -153,8 +155,10 @@ class GroundResponse(BaseModel):
     omega: float = Field(description="rad/s")
     stop_probability: float
     seconds: float = Field(description="time the grounding took (s)")
-    relevance_probability: list[list[float]] = Field(description="P(named landmark) per world cell, north-up")
-    goal_probability: list[list[float]] = Field(description="P(goal) per world cell, north-up")
+    relevance_probability: list[list[float]] | None = Field(
+        description="P(named landmark) per world cell, north-up (null: a model trained without J_ground)")
+    goal_probability: list[list[float]] | None = Field(
+        description="P(goal) per world cell, north-up (null: a model trained without J_plan)")
 
 
 class CheckpointModel(BaseModel):
@@ -294,7 +298,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                            if s.maps else None, truth=TruthFigures(perception=f.perception, relevance=f.relevance,
                                                                    goal=f.goal) if f else None)
                  for s, f in zip(records, figures, strict=True)]
-        return StepsResponse(episode_id=e.id, status=e.status, steps=steps, went_wrong=went_wrong(figures))
+        return StepsResponse(episode_id=e.id, status=e.status, steps=steps,
+                             went_wrong=went_wrong(figures, model.heads if model else None))
 
     def step_of(e: Episode, step: int):
         if not 0 <= step < len(e.steps):
@@ -337,14 +342,15 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         episode = episode_or_404(request.episode_id)
         g: Grounding = runner.call(Ground(request.episode_id, request.instruction, request.step), COMMAND_TIMEOUT)
         heads = runner.models[episode.checkpoint].heads
-        relevance = positive_probability(g.relevance_w, heads.grounding_w, heads.grounding_b)
-        goal = positive_probability(g.goal_w, heads.goal_w, heads.goal_b)
+        relevance = positive_probability(g.relevance_w, heads.grounding_w, heads.grounding_b) \
+            if heads.grounding_trained else None
+        goal = positive_probability(g.goal_w, heads.goal_w, heads.goal_b) if heads.goal_trained else None
         i = g.instruction
         return GroundResponse(episode_id=g.episode_id, step=g.step, instruction=i.text, landmark=i.noun_phrase,
                               side=i.side, goal_x=i.goal_x, goal_y=i.goal_y, v=g.v, omega=g.omega,
                               stop_probability=g.stop_probability, seconds=g.seconds,
-                              relevance_probability=np.round(relevance, 4).tolist(),
-                              goal_probability=np.round(goal, 4).tolist())
+                              relevance_probability=None if relevance is None else np.round(relevance, 4).tolist(),
+                              goal_probability=None if goal is None else np.round(goal, 4).tolist())
 
     from app.compare_api import add_compare_routes
 

@@ -272,7 +272,7 @@ class CompareView:
             f'<img data-layer="{name}" src="{data_uri(png_bytes(truth_rgb(name, truth, model.heads)))}" '
             f'style="{PIXELATED};border-radius:3px"/><div class="gsmn-figure" data-figure="{name}" '
             f'style="font-size:11px">{values[name]}</div></div>' for name in TRUTH_LAYERS)
-        wrong = went_wrong_text(went_wrong(figures[: t + 1]), ("<b>", "</b>"))
+        wrong = went_wrong_text(went_wrong(figures[: t + 1], model.heads), ("<b>", "</b>"))
         return (f'<div class="gsmn-truth" data-step="{t}" style="padding-right:10px;margin-top:8px">'
                 f'<div style="display:grid;grid-template-columns:repeat(3,minmax(0,1fr));gap:6px">{cells}</div>'
                 f'<div style="font-size:11px;opacity:.8;margin-top:3px">Up to step {t}: {wrong}</div></div>')

@@ -17,6 +17,7 @@ from app.jobs import CORES, MAX_IMPORT_BYTES, JobManager
 from app.run_settings import MAX_ROLLOUTS, run_settings
 from app.runner import Runner
 from app.schema import EnvId, Id, Strict, Text, path_id, responses
+from gsmn.attribution import STAGES
 
 COMMAND_TIMEOUT = 60.0
 SYSTEMS = Literal["gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem", "oracle"]
@@ -94,7 +95,8 @@ class EpisodeModel(BaseModel):
     stopped: bool
     final_x: float
     final_y: float
-    stage: str | None = Field(description="attribution of a failure: perception, grounding, goal or control")
+    stage: str | None = Field(description="attribution of a failure: perception, grounding, goal or control; for "
+                              "a model with an untrained head the merged stage (gsmn.attribution.STAGES)")
     attribution: dict | None = Field(description="the evidence (gsmn.attribution.Attribution)")
     region_steps: list[int] | None = Field(None, description="the steps at which a STOP would have succeeded "
                                            "(inside the success region); null: not recorded")
@@ -237,7 +239,7 @@ def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
                                  landmark: Annotated[Text | None, Query(max_length=200)] = None,
                                  side: Literal["left", "right", "front", "back"] | None = None,
                                  ambiguous: bool | None = None,
-                                 stage: Literal["perception", "grounding", "goal", "control"] | None = None,
+                                 stage: Literal[STAGES] | None = None,
                                  entered_region: bool | None = None) -> list[EpisodeModel]:
         jobs.evaluation(evaluation_id)
         return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,

@@ -138,7 +138,7 @@ def both_readings(r: EpisodeRow) -> str:
         return ""
     a = r.attribution or {}
     peak = (f" (its goal map then peaked {a['goal_peak_error']:.1f} m from the goal)"
-            if r.stage == "goal" and a.get("goal_peak_error") is not None else "")
+            if r.stage in ("goal", "grounding_or_goal") and a.get("goal_peak_error") is not None else "")
     return (f"<div class='gsmn-both' style='font-size:12px;margin:2px 0 4px'>Both readings hold: the attribution reads "
             f"the maps at the episode's end{peak}, while on the way the drone flew through the success region "
             f"without a STOP, where one would have succeeded. It failed to stop first; the maps it ended with "
@@ -154,7 +154,8 @@ def episode_html(r: EpisodeRow, note: str) -> str:
     if not r.success and r.region_steps is not None:
         rows.append(("success region", region_text(r.region_steps, r.region_stop_p, ("<b>", "</b>"))))
     if a:
-        rows += [("perceived", "seen; no trained reading (trained without J_percept)" if a["perceived"] is None
+        rows += [("perceived", "seen; no trained reading (trained without J_percept)"
+                  if a.get("perceived", False) is None
                   else ("yes" if a["perceived"] else "no") + (
                     f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
                     if a["observed"] else " (never seen)")),

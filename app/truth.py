@@ -87,15 +87,18 @@ def step_figures(episode: Episode, heads: MapHeads, success_radius: float = 6.0)
     return figures
 
 
-def went_wrong(figures: list[Agreement | None]) -> dict[str, int | None] | None:
-    """The step at which each figure fell below its threshold for good (`gsmn.analysis.truth.first_failures`)."""
+def went_wrong(figures: list[Agreement | None], heads: MapHeads | None = None) -> dict[str, int | None] | None:
+    """The step at which each figure fell below its threshold for good (`gsmn.analysis.truth.first_failures`),
+    without the figures of heads the model never trained (`heads`; their figures are None throughout, which
+    `first_failures` would read as wrong from the first step)."""
     known = [f for f in figures if f is not None]
     if not known:
         return None
     steps = first_failures(known)
-    if all(f.goal is None for f in known):  # no trained goal head: nothing to say
-        del steps["goal"]
-    return steps
+    untrained = {"perception": heads is not None and not heads.perception_trained,
+                 "relevance": heads is not None and not heads.grounding_trained,
+                 "goal": not heads.goal_trained if heads is not None else all(f.goal is None for f in known)}
+    return {name: step for name, step in steps.items() if not untrained.get(name, False)}
 
 
 STAGE_OF_FIGURE = {"perception": "perception", "relevance": "grounding", "goal": "goal"}
@@ -130,4 +133,4 @@ def result_rows(episode: Episode, heads: MapHeads | None, success_radius: float 
         return "n/a" if x is None else f"{x:.2f}"
 
     return (f"| truth at the end | perception {fmt(last.perception)}, relevance AUC {fmt(last.relevance)}, goal mass "
-            f"{fmt(last.goal)} |\n| went wrong | {went_wrong_text(went_wrong(figures))} |\n")
+            f"{fmt(last.goal)} |\n| went wrong | {went_wrong_text(went_wrong(figures, heads))} |\n")

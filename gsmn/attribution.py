@@ -56,7 +56,8 @@ STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goa
 def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:
     """The stages to list for these counts: a merged stage only where some count has it (a model with an
     untrained head), so tables of GSMN failures keep their four rows."""
-    return tuple(k for k in STAGES if k in PIPELINE or any(c.get(k, 0) for c in counts))
+    extra = sorted({k for c in counts for k, n in c.items() if n and k not in STAGES})  # over two untrained heads
+    return tuple(k for k in STAGES if k in PIPELINE or any(c.get(k, 0) for c in counts)) + tuple(extra)
 
 
 @dataclass(frozen=True)

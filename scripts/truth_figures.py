@@ -49,7 +49,7 @@ def main() -> int:
                 return "  n/a" if x is None else f"{x:5.2f}"
 
             print(f"{env_id:4d}  {e.result.success!s:7}  {len(e.steps):5d}  {fmt(f.perception):>10}  "
-                  f"{fmt(f.relevance):>13}  {fmt(f.goal):>9}  {went_wrong(figures)}", flush=True)
+                  f"{fmt(f.relevance):>13}  {fmt(f.goal):>9}  {went_wrong(figures, heads)}", flush=True)
     finally:
         runner.close()
     return 0

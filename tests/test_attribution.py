@@ -201,6 +201,7 @@ def test_an_untrained_head_merges_its_stage_with_the_next_judged_one():
         "grounding_or_goal_or_control"] == 1
     counts = dict.fromkeys(STAGES, 1) | {"goal_or_control": 0, "grounding_or_goal": 0}
     assert reported_stages(counts) == ("perception", "grounding", "goal", "control", "perception_or_grounding")
+    assert reported_stages(counts, {"grounding_or_goal_or_control": 2})[-1] == "grounding_or_goal_or_control"
     assert set(STAGE_TITLES) == set(STAGES)
 
 

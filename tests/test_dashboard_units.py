@@ -158,6 +158,20 @@ def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_th
     assert trained["semantic"].title == "Semantic map: most likely landmark" and "J_" not in trained["relevance"].title
 
 
+def test_went_wrong_leaves_out_the_figures_of_untrained_heads():
+    """An untrained head's figure is None at every step, which first_failures reads as wrong from step 0: the
+    dashboard's "went wrong" must leave it out instead."""
+    from app.truth import went_wrong
+    from gsmn.analysis.truth import Agreement
+
+    figures = [Agreement(0.9, None, 0.5, 3), Agreement(0.9, None, 0.5, 3)]
+    assert went_wrong(figures)["relevance"] == 0  # read without knowing the heads
+    assert set(went_wrong(figures, dataclasses.replace(_heads(), grounding_trained=False))) == {"perception", "goal"}
+    assert set(went_wrong(figures, dataclasses.replace(_heads(), perception_trained=False))) == {"relevance", "goal"}
+    assert set(went_wrong(figures, dataclasses.replace(_heads(), goal_trained=False))) == {"perception", "relevance"}
+    assert set(went_wrong([Agreement(0.9, 0.9, None, 3)])) == {"perception", "relevance"}  # older: goal all None
+
+
 def test_positive_probability_is_the_binary_head_softmax():
     maps = np.zeros((3, 2, 2), np.float32)
     maps[0, 0, 0] = 10.0
