@@ -55,9 +55,9 @@ TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Releva
 FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
-NO_GOAL_HEAD = "goal channel 0 (trained without J_plan: no P(goal))"
-NO_GROUNDING_HEAD = "relevance channel 0 (trained without J_ground: no P(named))"
-NO_PERCEPTION_HEAD = "semantic channel 0 (trained without J_percept: no landmark classes)"
+NO_GOAL_HEAD = "channel 0 (no J_plan)"
+NO_GROUNDING_HEAD = "channel 0 (no J_ground)"
+NO_PERCEPTION_HEAD = "channel 0 (no J_percept)"
 
 
 @dataclass(frozen=True)

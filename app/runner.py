@@ -195,8 +195,8 @@ class Runner(ComparingRunner):
                 if not (meta.parent.parent / "meta.json").is_file():
                     found[f"{meta.parent.parent.name}/{meta.parent.name}"] = meta.parent
         if self.default_ref is not None and self.default_ref not in found:
-            path = self._path_of(self.default_ref)
-            if path.is_dir():
+            path = self._path_of(self.default_ref)  # e.g. a folder given by its path: listed once, by its name
+            if path.is_dir() and path.resolve() not in {p.resolve() for p in found.values()}:
                 found[self.default_ref] = path
         for name, path in (self.extra_checkpoints() if self.extra_checkpoints else {}).items():
             found.setdefault(name, path)

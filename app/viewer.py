@@ -363,6 +363,8 @@ class Viewer(RunnerListener):
         for info in self.runner.checkpoint_list():
             if info.kind in ("gsmn", "gsmn-no-plan") and (info.loaded or info.error is None):
                 label = f"Model: {info.label or info.name}"
+                if label in self._checkpoint_of_choice and self._checkpoint_of_choice[label] != info.name:
+                    label = f"Model: {info.name}"  # two checkpoints of one label (a menu of duplicates shows nothing)
                 self._checkpoint_of_choice[label] = info.name
                 if info.default:
                     choices.insert(0, label)

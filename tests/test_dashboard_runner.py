@@ -239,3 +239,12 @@ def test_table2_checkpoints_are_offered_under_readable_names_and_fly(tmp_path):
         assert episode.steps[0].maps is not None, "its maps are drawn"
     finally:
         r.close()
+    # served by its path (`gsmn serve --checkpoint checkpoints/table2/no-plan`): listed once, as the default, by its
+    # name (two menu entries of one label left the dashboard's page blank)
+    r = Runner(preset("tiny"), checkpoint=root / "table2" / "no-plan", checkpoints_root=root).start()
+    try:
+        listed = r.checkpoint_list()
+        assert [c.name for c in listed] == ["gsmn", "table2/no-ground", "table2/no-plan"]
+        assert [c.name for c in listed if c.default] == ["table2/no-plan"]
+    finally:
+        r.close()
