@@ -117,7 +117,8 @@ def print_report(results: dict, recordings: Path, checkpoint: Path | None = None
           f"({checkpoint or results.get('checkpoint') or 'checkpoints/gsmn'}):")
     ambiguous = ambiguous_counts(results, found)
     for stage in reported_stages(counts):
-        print(f"  {STAGE_TITLES.get(stage, stage):<15} {counts[stage]}  ({ambiguous.get(stage, 0)} with an ambiguous instruction)")
+        title = STAGE_TITLES.get(stage, stage)
+        print(f"  {title:<15} {counts[stage]}  ({ambiguous.get(stage, 0)} with an ambiguous instruction)")
         if stage == "control" and counts[stage]:
             for kind, n in control_misses(found).items():
                 print(f"    {kind:<13} {n}")
