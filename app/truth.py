@@ -94,11 +94,10 @@ def went_wrong(figures: list[Agreement | None], heads: MapHeads | None = None) -
     known = [f for f in figures if f is not None]
     if not known:
         return None
-    steps = first_failures(known)
-    untrained = {"perception": heads is not None and not heads.perception_trained,
-                 "relevance": heads is not None and not heads.grounding_trained,
-                 "goal": not heads.goal_trained if heads is not None else all(f.goal is None for f in known)}
-    return {name: step for name, step in steps.items() if not untrained.get(name, False)}
+    steps = first_failures(known, heads=heads)
+    if heads is None and all(f.goal is None for f in known):  # heads unknown: a goal never measured says nothing
+        del steps["goal"]
+    return steps
 
 
 STAGE_OF_FIGURE = {"perception": "perception", "relevance": "grounding", "goal": "goal"}

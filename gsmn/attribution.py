@@ -102,11 +102,6 @@ def trained_heads(model) -> dict[str, bool]:
             "goal": model.heads.goal is not None and loss.goal and loss.goal_weight > 0}
 
 
-def goal_head_trained(model) -> bool:
-    """Whether the model's goal head was trained (J_plan on): not for "gsmn-no-plan" or `loss.goal false`."""
-    return trained_heads(model)["goal"]
-
-
 @dataclass(frozen=True)
 class FinalMaps:
     """The world-frame maps the model held at the last step of an episode, channels first, north-up."""
@@ -355,14 +350,7 @@ def failed_from(truth: np.ndarray | None, heads: Heads | None = None) -> dict[st
 
     figures = [Agreement(value(p), value(r), value(g), 0, float(share))
                for p, r, g, share in np.asarray(truth, np.float64)]
-    steps = first_failures(figures)
-    out = {FIGURE_STAGES[k]: v for k, v in steps.items()}
-    if heads is not None:  # an untrained head's figure says nothing
-        for stage, trained in (("perception", heads.perception_trained), ("grounding", heads.grounding_trained),
-                               ("goal", heads.goal_trained)):
-            if not trained:
-                out.pop(stage, None)
-    return out
+    return {FIGURE_STAGES[k]: v for k, v in first_failures(figures, heads=heads).items()}
 
 
 class TraceRecorder:

@@ -149,14 +149,21 @@ def agreement(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarra
                      goal_mass(goal_w, truth, heads), cells, float(truth.region.mean()))
 
 
-def first_failures(figures: list[Agreement], thresholds: dict[str, float] | None = None) -> dict[str, int | None]:
+def first_failures(figures: list[Agreement], thresholds: dict[str, float] | None = None,
+                   heads: Heads | None = None) -> dict[str, int | None]:
     """For each figure, the first step from which it stayed at or below its threshold (`THRESHOLDS`: no better than
     chance) to the end of the episode, where that stage went wrong for good; None if it ended above it. Steps where
     a figure is undefined (nothing seen yet) count as wrong. (The first step at which a figure was low at all says
-    little: every map is empty at the start.)"""
+    little: every map is empty at the start.) With `heads`, the figures of heads the model never trained are left
+    out: they are None throughout, which would read as wrong from the first step."""
     thresholds = thresholds or THRESHOLDS
+    untrained = set() if heads is None else {name for name, trained in (
+        ("perception", heads.perception_trained), ("relevance", heads.grounding_trained),
+        ("goal", heads.goal_trained)) if not trained}
     out: dict[str, int | None] = {}
     for name, limit in thresholds.items():
+        if name in untrained:
+            continue
         def wrong(f: Agreement, name=name, limit=limit) -> bool:
             v = getattr(f, name)
             return v is None or v <= (limit * f.region_share if name == "goal" else limit)

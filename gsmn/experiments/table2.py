@@ -38,6 +38,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -819,14 +820,6 @@ def pending(ship: Path, split: str = "dev") -> str:
     return "not yet (trained, not evaluated)" if trained(stage) else f"not yet ({training_stage(stage)})"
 
 
-def _stage_counts(episodes: list[dict]) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for e in episodes:
-        if e.get("stage"):
-            counts[e["stage"]] = counts.get(e["stage"], 0) + 1
-    return counts
-
-
 def table_markdown(ship: Path) -> str:
     """Table 2 from the kept evaluations: ours beside the paper's, each ablation's drop from the control with a
     paired sign test over the same environments, and the failures' attribution counts."""
@@ -834,7 +827,7 @@ def table_markdown(ship: Path) -> str:
 
     found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())
              for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
-    counts = {name: _stage_counts(result["episodes"]) for name, result in found.items()}
+    counts = {name: Counter(e["stage"] for e in result["episodes"] if e.get("stage")) for name, result in found.items()}
     stages = reported_stages(*counts.values())  # the merged stages of untrained heads only where some row has one
     lines = ["| system | success % (95 % interval) | landmark % | mean dist (m) | median dist (m) | paper: success, "
              "landmark, mean, median | drop from control (fixed / broken, sign test p) | failures by stage ("
