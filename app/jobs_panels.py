@@ -13,7 +13,7 @@ from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
 from app.panels import region_text
 from app.supervisor import resumable
 from app.truth import went_wrong_text
-from gsmn.attribution import STAGE_TITLES, reported_stages
+from gsmn.attribution import STAGE_COLOURS, STAGE_TITLES, reported_stages
 from gsmn.world.spec import split_of
 
 
@@ -60,7 +60,8 @@ def summary_html(e: Evaluation, stages: dict[str, int], regions: dict[str, int] 
             continue
         width = 100 * n / failures if failures else 0
         bars.append(f'<div style="display:flex;align-items:center;gap:6px;font-size:12px" data-stage="{stage}">'
-                    f'<span style="width:104px">{STAGE_TITLES.get(stage, "no maps recorded")}</span>'
+                    f'<span style="width:104px">{"no maps recorded" if stage == "unattributed" else stage_title(stage)}'
+                    f'</span>'
                     f'<span style="flex:1;background:#eee;height:10px;border-radius:2px">'
                     f'<span style="display:block;width:{width:.0f}%;height:10px;'
                     f'background:{_STAGE_COLOURS.get(stage, "#999")};'
@@ -99,9 +100,7 @@ def region_summary(regions: dict[str, int] | None) -> str:
             f'STOP there, <b>{regions["never"]}</b> never entered it{rest}</div>')
 
 
-_STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
-                  "perception_or_grounding": "#5b5fc7", "grounding_or_goal": "#a0694a", "goal_or_control": "#d35400",
-                  "unattributed": "#999"}
+_STAGE_COLOURS = {**STAGE_COLOURS, "unattributed": "#999"}
 
 
 SORTS = {"flown order": None, "environment id": lambda r: r.env_id,
@@ -117,7 +116,7 @@ def sort_rows(rows: list[EpisodeRow], order: str) -> list[EpisodeRow]:
 
 def stage_title(stage: str | None) -> str:
     """A stage as the attribution bars name it ("goal_or_control" -> "goal or control")."""
-    return STAGE_TITLES.get(stage, stage) if stage else ""
+    return STAGE_TITLES.get(stage, stage.replace("_", " ")) if stage else ""
 
 
 def episode_label(r: EpisodeRow) -> str:

@@ -45,12 +45,13 @@ from app.jobs_panels import (
     runs_html,
     short_path,
     sort_rows,
+    stage_title,
     summary_html,
 )
 from app.panels import error_html
 from app.recording import Episode
 from app.run_settings import RUN_PRESETS, run_settings
-from gsmn.attribution import STAGE_TITLES, STAGES
+from gsmn.attribution import PIPELINE, reported_stages
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS
 
@@ -62,7 +63,6 @@ ALL = "all"
 EXPERT_CHOICE = "Expert (oracle)"
 ENV_TRAIN = "train split"
 REFRESH_SECONDS = 0.5
-STAGE_OF_TITLE = {STAGE_TITLES[k]: k for k in STAGES}  # the filter shows the bars' names
 
 
 class JobsView(RunnerListener):
@@ -134,7 +134,7 @@ class JobsView(RunnerListener):
                 self.landmark = gui.add_dropdown("Landmark", (ALL,))
                 self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
                 self.ambiguous = gui.add_dropdown("Ambiguous", (ALL, "ambiguous", "unambiguous"))
-                self.stage = gui.add_dropdown("Attributed to", (ALL, *(STAGE_TITLES[k] for k in STAGES)),
+                self.stage = gui.add_dropdown("Attributed to", (ALL, *(stage_title(k) for k in PIPELINE)),
                                               hint="the names of the bars above")
                 self.region = gui.add_dropdown("Success region", (ALL, *REGION_CHOICES),
                                                hint="whether the drone was ever where a STOP would have succeeded: "
@@ -348,13 +348,19 @@ class JobsView(RunnerListener):
             keep = self.landmark.value if self.landmark.value in landmarks and not reset_filters else ALL
             self.landmark.options = landmarks
             self.landmark.value = keep
-        self.summary.content = summary_html(e, self.jobs.db.stage_counts(e.id), self.jobs.db.region_counts(e.id))
+        counts = self.jobs.db.stage_counts(e.id)
+        self.summary.content = summary_html(e, counts, self.jobs.db.region_counts(e.id))
+        stage_of_title = {stage_title(k): k for k in reported_stages(counts)}  # the stages the bars show
+        if tuple(self.stage.options) != (ALL, *stage_of_title):
+            keep = self.stage.value if self.stage.value in stage_of_title and not reset_filters else ALL
+            self.stage.options = (ALL, *stage_of_title)
+            self.stage.value = keep
         ambiguous = {"ambiguous": True, "unambiguous": False}.get(self.ambiguous.value)
         self.rows = self.jobs.db.episodes(
             e.id, failed_only=bool(self.failed_only.value),
             landmark=None if self.landmark.value == ALL else self.landmark.value,
             side=None if self.side.value == ALL else self.side.value, ambiguous=ambiguous,
-            stage=STAGE_OF_TITLE.get(self.stage.value),
+            stage=stage_of_title.get(self.stage.value),
             entered_region=REGION_CHOICES.get(self.region.value))
         self.rows = sort_rows(self.rows, self.sort.value)
         self._show_rows()

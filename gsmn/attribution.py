@@ -51,6 +51,9 @@ BEARINGS = ("ahead", "behind", "left", "right")  # 90-degree sectors around the 
 STAGE_TITLES = {"perception": "not perceived", "grounding": "not grounded", "goal": "goal misplaced",
                 "control": "control", "perception_or_grounding": "perception or grounding",
                 "grounding_or_goal": "grounding or goal", "goal_or_control": "goal or control"}
+STAGE_COLOURS = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b",
+                 "perception_or_grounding": "#5b5fc7", "grounding_or_goal": "#a0694a",
+                 "goal_or_control": "#d35400"}  # one colour per stage in the dashboard's bars and the figures
 
 
 def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:

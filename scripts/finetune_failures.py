@@ -35,6 +35,7 @@ from pathlib import Path
 import httpx
 
 from gsmn.analysis.compare import figure
+from gsmn.attribution import reported_stages
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- finetune-failures:start -->", "<!-- finetune-failures:end -->"
@@ -135,10 +136,12 @@ def markdown(args, run: dict, rows: list[tuple[str, dict, dict]], compares: list
                      f"{fmt(b.get('landmark_success'))} | {fmt(a.get('landmark_success'))} | "
                      f"{fmt(b.get('mean_distance'), ' m')} | {fmt(a.get('mean_distance'), ' m')} | {c['fixed']} | "
                      f"{c['broken']} |")
-    lines += ["", "Failures by attribution (perception / grounding / goal / control), before -> after:", ""]
+    stages = reported_stages(*(e["stages"] for _, before, after in rows for e in (before, after)))
+    lines += ["", f"Failures by attribution ({' / '.join(k.replace('_', ' ') for k in stages)}), before -> after:",
+              ""]
     for (name, before, after) in rows:
         def counts(e: dict) -> str:
-            return " / ".join(str(e["stages"].get(k, 0)) for k in ("perception", "grounding", "goal", "control"))
+            return " / ".join(str(e["stages"].get(k, 0)) for k in stages)
 
         lines.append(f"- {name}: {counts(before)} -> {counts(after)}")
     lines += ["", f"![before and after]({png})", "", "Reproduce: `.venv/bin/python scripts/finetune_failures.py "

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from gsmn.attribution import (
+    STAGE_COLOURS,
     STAGE_TITLES,
     STAGES,
     Attribution,
@@ -202,7 +203,7 @@ def test_an_untrained_head_merges_its_stage_with_the_next_judged_one():
     counts = dict.fromkeys(STAGES, 1) | {"goal_or_control": 0, "grounding_or_goal": 0}
     assert reported_stages(counts) == ("perception", "grounding", "goal", "control", "perception_or_grounding")
     assert reported_stages(counts, {"grounding_or_goal_or_control": 2})[-1] == "grounding_or_goal_or_control"
-    assert set(STAGE_TITLES) == set(STAGES)
+    assert set(STAGE_TITLES) == set(STAGES) == set(STAGE_COLOURS)
 
 
 def test_which_heads_a_model_trained_is_read_from_its_configuration():

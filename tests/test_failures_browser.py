@@ -18,7 +18,9 @@ import browser_support
 import pytest
 
 from app.browser import field
+from app.jobs_panels import stage_title
 from app.panels import region_text, steps_in_region
+from gsmn.attribution import PIPELINE, reported_stages
 
 HORIZON = 40
 
@@ -96,6 +98,14 @@ def test_browse_failures_replay_one_and_fine_tune_on_them(dashboard, page):
     choose("Success region", "never entered", sum(not r.region_steps for r in rows))
     choose("Success region", "flew through it", sum(bool(r.region_steps) for r in rows))
     choose("Success region", "all", len(rows))
+    # the stage filter offers the stages the bars show: for a full GSMN the four of the pipeline, none merged
+    field(page, "Attributed to").click()
+    offered = page.get_by_role("option").all_inner_texts()
+    page.keyboard.press("Escape")
+    shown = reported_stages(dashboard.jobs.db.stage_counts(1))
+    assert offered == ["all", *map(stage_title, shown)] == ["all", *map(stage_title, PIPELINE)], offered
+    choose("Attributed to", stage_title(first.stage), sum(r.stage == first.stage for r in rows))
+    choose("Attributed to", "all", len(rows))
 
     # pick a failure: it flies again in the live view, with its maps, and its attribution shows
     before = dashboard.runner.episodes.all()

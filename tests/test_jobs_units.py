@@ -29,6 +29,7 @@ from app.jobs_panels import (
 from app.results import region_steps_of, region_stop_p_of, summarize_rows
 from app.run_settings import RUN_PRESETS, run_config, run_settings
 from app.supervisor import pid_runs
+from gsmn.attribution import STAGE_COLOURS
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
 
@@ -172,6 +173,11 @@ def test_failures_are_told_apart_by_whether_they_flew_through_the_success_region
     assert "<b>2</b> flew through it without a STOP there, <b>1</b> never entered it" in line
     assert "recorded without" not in line and "gsmn-regions" not in summary_html(ev, db.stage_counts(eid))
     assert "1 recorded without it" in summary_html(ev, {}, {"entered": 1, "never": 0, "unknown": 1})
+    # an ablation's merged stages get bars of their own, named and coloured like the filter and the figures
+    ablation = summary_html(ev, {"goal": 2, "perception_or_grounding": 3, "grounding_or_goal_or_control": 1})
+    assert 'data-stage="perception_or_grounding"' in ablation and "perception or grounding" in ablation
+    assert STAGE_COLOURS["perception_or_grounding"] in ablation and "grounding or goal or control" in ablation
+    assert 'data-stage="goal_or_control"' not in ablation and "Failures by attribution (6)" in ablation
     db.close()
 
 

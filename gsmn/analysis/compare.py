@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from gsmn.analysis.failures import stage_counts
-from gsmn.attribution import STAGES, reported_stages
+from gsmn.attribution import STAGE_COLOURS, STAGES, reported_stages
 from gsmn.evaluation import merge_results
 
 
@@ -93,8 +93,7 @@ def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    stages = ("perception", "grounding", "goal", "control")
-    colours = {"perception": "#8e44ad", "grounding": "#2870f5", "goal": "#e08020", "control": "#c0392b"}
+    stages = reported_stages(*(e["stages"] for _, before, after in rows for e in (before, after)))
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     ticks, names = [], []
     for g, (name, before, after) in enumerate(rows):
@@ -108,7 +107,8 @@ def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
             bottom = 0
             for stage in stages:
                 n = e["stages"].get(stage, 0)
-                axes[2].bar(x, n, 0.8, bottom=bottom, color=colours[stage], label=stage if x == 0 else None)
+                axes[2].bar(x, n, 0.8, bottom=bottom, color=STAGE_COLOURS.get(stage, "#999"),
+                            label=stage.replace("_", " ") if x == 0 else None)
                 bottom += n
             ticks.append(x)
             names.append(f"{'before' if k == 0 else 'after'}\n{name.split(' (')[0]}")
