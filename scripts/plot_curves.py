@@ -73,8 +73,9 @@ def main(argv: list[str] | None = None) -> None:
     axes = list(grid.flat)[: len(panels)]
     for ax in list(grid.flat)[len(panels):]:
         ax.set_visible(False)
-    for ax, (label, folders) in zip(axes, panels, strict=True):
-        records, unit = read_runs(folders)
+    runs = [read_runs(folders) for _, folders in panels]
+    longest = max((len(records) for records, _ in runs), default=1)  # one x axis: a shorter run shows as shorter
+    for ax, (label, _), (records, unit) in zip(axes, panels, runs, strict=True):
         epochs = list(range(1, len(records) + 1))
         for key, name, colour in CURVES:
             values = [r[key] for r in records if key in r]
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
                 ax.plot(epochs[: len(values)], values, marker="o", color=colour, label=name)
         ax.plot(epochs, [r["loss_action"] for r in records], marker="s", ls="--", color="black",
                 label="action loss (dev)")
-        ax.set(title=label, xlabel=unit, ylim=(0, 1), xlim=(0, max(epochs, default=1) + 1))
+        ax.set(title=label, xlabel=unit, ylim=(0, 1), xlim=(0, longest + 1))
         ax.grid(axis="y", ls="--", alpha=0.6)
     for row in grid:
         row[0].set_ylabel("Dev accuracy")
