@@ -34,8 +34,7 @@ from pathlib import Path
 
 import httpx
 
-from gsmn.analysis.compare import figure
-from gsmn.attribution import reported_stages
+from gsmn.analysis.compare import figure, rows_stages
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- finetune-failures:start -->", "<!-- finetune-failures:end -->"
@@ -136,7 +135,7 @@ def markdown(args, run: dict, rows: list[tuple[str, dict, dict]], compares: list
                      f"{fmt(b.get('landmark_success'))} | {fmt(a.get('landmark_success'))} | "
                      f"{fmt(b.get('mean_distance'), ' m')} | {fmt(a.get('mean_distance'), ' m')} | {c['fixed']} | "
                      f"{c['broken']} |")
-    stages = reported_stages(*(e["stages"] for _, before, after in rows for e in (before, after)))
+    stages = rows_stages(rows)
     lines += ["", f"Failures by attribution ({' / '.join(k.replace('_', ' ') for k in stages)}), before -> after:",
               ""]
     for (name, before, after) in rows:

@@ -86,6 +86,11 @@ def compare_report(before_files: list[Path], after_files: list[Path], records_be
     return markdown(name, before, after, compare(before, after), stages)
 
 
+def rows_stages(rows: list[tuple[str, dict, dict]]) -> tuple[str, ...]:
+    """The stages to show for these before/after rows: `reported_stages` over every side's counts."""
+    return reported_stages(*(e["stages"] for _, before, after in rows for e in (before, after)))
+
+
 def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
     """Success and landmark success, mean distance, and failures by attribution, before and after, for each set."""
     import matplotlib
@@ -93,7 +98,7 @@ def figure(rows: list[tuple[str, dict, dict]], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    stages = reported_stages(*(e["stages"] for _, before, after in rows for e in (before, after)))
+    stages = rows_stages(rows)
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     ticks, names = [], []
     for g, (name, before, after) in enumerate(rows):
