@@ -1,0 +1,124 @@
+"""Does a model trained without J_ground still ground the instruction in its relevance map? A linear probe.
+
+The grounding head (Linear(3 -> 2) on the relevance map at landmark cells, gsmn.model.heads) of a model trained
+without J_ground is its initialisation, so failure attribution cannot read that model's relevance map. This script
+fits the head afresh on the model's own recorded final relevance maps, with the model frozen: for every landmark
+cell the camera covered, is it the landmark the instruction names? Two-fold cross-fitting (even and odd env ids),
+so each episode is read by a probe fitted on the other half. It prints how often the named landmark scores above
+every other landmark (the attribution's "grounded"), with the probe and with the untrained head, and the failures'
+attributed stages with the probe standing in for the head.
+
+    python scripts/probe_grounding.py --checkpoint checkpoints/table2/no-ground \
+        --record runs/table2/no-ground/record --evaluation checkpoints/table2/no-ground/evaluation.json
+
+`--record` is the folder of maps an evaluation with `--record` writes (`gsmn experiment table2` writes
+runs/table2/<name>/record); `--evaluation` a `gsmn eval` JSON or a Table 2 `evaluation.json` of the same episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from dataclasses import replace
+
+import numpy as np
+
+from gsmn.attribution import (
+    Heads,
+    attribute_record,
+    cell_of,
+    load_trace,
+    observed_cells,
+    positive_probability,
+    trace_path,
+)
+from gsmn.model.checkpoint import load_checkpoint
+from gsmn.world.spec import world_for_env
+
+
+def cells(record: dict, maps, world) -> tuple[np.ndarray, np.ndarray]:
+    """The relevance-map features (M, 3) of the landmark cells the camera covered, and whether each is named."""
+    F, n = world.field_size, maps.relevance_map_w.shape[-1]
+    seen = observed_cells(maps.semantic_map_w)
+    xs, ys = [], []
+    for lm in world.landmarks:
+        r, c = cell_of(lm.x, lm.y, F, n)
+        if seen[r, c]:
+            xs.append(maps.relevance_map_w[:, r, c].astype(np.float64))
+            ys.append(lm.noun_phrase == record["noun_phrase"])
+    return np.array(xs).reshape(-1, 3), np.array(ys, bool)
+
+
+def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50) -> tuple[np.ndarray, np.ndarray]:
+    """Binary logistic regression by Newton's method, class-balanced; as Linear(C -> 2) weight (2, C), bias (2,)."""
+    X = np.hstack([x, np.ones((len(x), 1))])
+    w = np.zeros(X.shape[1])
+    weight = np.where(y, 0.5 / max(y.sum(), 1), 0.5 / max((~y).sum(), 1))
+    for _ in range(steps):
+        p = 1 / (1 + np.exp(-X @ w))
+        grad = X.T @ (weight * (p - y)) + l2 * w
+        hess = (X * (weight * p * (1 - p))[:, None]).T @ X + l2 * np.eye(len(w))
+        w -= np.linalg.solve(hess, grad)
+    # Linear(C -> 2) whose class-1 minus class-0 logit is the regression's
+    return np.stack([np.zeros(x.shape[1]), w[:-1]]).astype(np.float32), np.array([0.0, w[-1]], np.float32)
+
+
+def grounded(record: dict, maps, world, heads: Heads) -> bool | None:
+    """The attribution's verdict: P(named) at the named landmark above every other landmark's (None: not seen)."""
+    F, n = world.field_size, maps.relevance_map_w.shape[-1]
+    target = world.landmarks[int(record["landmark_index"])]
+    r, c = cell_of(target.x, target.y, F, n)
+    if not observed_cells(maps.semantic_map_w)[r, c]:
+        return None
+    p = positive_probability(maps.relevance_map_w, heads.grounding_w, heads.grounding_b)
+    others = [p[cell_of(lm.x, lm.y, F, n)] for lm in world.landmarks if lm.noun_phrase != target.noun_phrase]
+    return bool(p[r, c] > max(others, default=0.5))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--record", required=True, help="the maps recorded by the evaluation (--record)")
+    ap.add_argument("--evaluation", required=True, help="the evaluation's JSON (its episodes)")
+    args = ap.parse_args()
+
+    model, config, *_ = load_checkpoint(args.checkpoint)
+    heads = Heads.of(model)
+    episodes = [e for e in json.loads(open(args.evaluation).read())["episodes"]
+                if trace_path(args.record, int(e["env_id"])).is_file()]
+    if not episodes:
+        raise SystemExit(f"no recorded maps in {args.record} for the episodes of {args.evaluation}")
+    loaded = [(e, load_trace(trace_path(args.record, int(e["env_id"]))), world_for_env(int(e["env_id"]), config.world))
+              for e in episodes]
+
+    folds = [[item for item in loaded if int(item[0]["env_id"]) % 2 == k] for k in (0, 1)]
+    probes = []
+    for k in (0, 1):  # fitted on the other fold
+        xy = [cells(e, t.maps, w) for e, t, w in folds[1 - k]]
+        probes.append(fit_logistic(np.concatenate([x for x, _ in xy]), np.concatenate([y for _, y in xy])))
+
+    rows = {"untrained head" if not heads.grounding_trained else "trained head": [], "probe": []}
+    stages = Counter()
+    for k in (0, 1):
+        probe_heads = replace(heads, grounding_w=probes[k][0], grounding_b=probes[k][1], grounding_trained=True)
+        for e, t, w in folds[k]:
+            rows["probe"].append(grounded(e, t.maps, w, probe_heads))
+            rows[next(iter(rows))].append(grounded(e, t.maps, w, heads))
+            if not e["success"]:
+                stages[attribute_record(e, t, probe_heads, config).stage] += 1
+    n_landmarks = np.mean([len(w.landmarks) for _, _, w in loaded])
+    print(f"{args.checkpoint}: {len(loaded)} episodes, {n_landmarks:.1f} landmarks per world")
+    for name, verdicts in rows.items():
+        seen = [v for v in verdicts if v is not None]
+        print(f"  named landmark above every other landmark ({name}): {sum(seen)} of {len(seen)} episodes where "
+              f"it was seen ({100 * sum(seen) / max(len(seen), 1):.1f} %)")
+    print("  failures by stage with the probe as grounding head: "
+          + ", ".join(f"{s} {c}" for s, c in sorted(stages.items(), key=lambda kv: -kv[1])))
+    for k, (wt, b) in enumerate(probes):
+        print(f"  probe for fold {k}: logit(named) = {' + '.join(f'{v:.2f} r{i}' for i, v in enumerate(wt[1]))} "
+              f"+ {b[1]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
