@@ -6,7 +6,8 @@ fits the head afresh on the model's own recorded final relevance maps, with the 
 cell the camera covered, is it the landmark the instruction names? Two-fold cross-fitting (even and odd env ids),
 so each episode is read by a probe fitted on the other half. It prints how often the named landmark scores above
 every other landmark (the attribution's "grounded"), with the probe and with the untrained head, and the failures'
-attributed stages with the probe standing in for the head.
+attributed stages with the probe standing in for the head. `--figure PATH` draws the first episodes' final
+relevance maps, channel by channel, beside the probe's P(named), the landmarks marked (needs matplotlib).
 
     python scripts/probe_grounding.py --checkpoint checkpoints/table2/no-ground \
         --record runs/table2/no-ground/record --evaluation checkpoints/table2/no-ground/evaluation.json
@@ -76,11 +77,44 @@ def grounded(record: dict, maps, world, heads: Heads) -> bool | None:
     return bool(p[r, c] > max(others, default=0.5))
 
 
+def figure(path: str, loaded: list, probes: list, rows: int = 4) -> None:
+    """Each of the first `rows` episodes' final relevance map: its channels and the probe's P(named), with the
+    named landmark (white star) and the others (red crosses); cells never covered are blank."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(rows, 4, figsize=(10, 2.6 * rows), squeeze=False)
+    for (e, t, w), row in zip(loaded[:rows], axes, strict=False):
+        R = t.maps.relevance_map_w.astype(np.float32)
+        n, seen = R.shape[-1], observed_cells(t.maps.semantic_map_w)
+        wt, b = probes[int(e["env_id"]) % 2]
+        panels = [(R[i], f"channel {i}") for i in range(R.shape[0])]
+        panels.append((positive_probability(R, wt, b), "probe: P(named)"))
+        for ax, (values, title) in zip(row, panels, strict=False):
+            ax.imshow(np.where(seen, values, np.nan), cmap="viridis")
+            for lm in w.landmarks:
+                r, c = cell_of(lm.x, lm.y, w.field_size, n)
+                named = lm.noun_phrase == e["noun_phrase"]
+                ax.plot(c, r, "w*" if named else "r+", ms=10 if named else 7, mec="k" if named else None)
+            ax.set_title(f"env {e['env_id']}, {title}", fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        row[0].set_ylabel(e["noun_phrase"], fontsize=9)
+    fig.suptitle("Final relevance maps of a model trained without J_ground (north up; star: the named landmark)",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--record", required=True, help="the maps recorded by the evaluation (--record)")
     ap.add_argument("--evaluation", required=True, help="the evaluation's JSON (its episodes)")
+    ap.add_argument("--figure", default=None, help="draw the first episodes' relevance maps to this PNG")
     args = ap.parse_args()
 
     model, config, *_ = load_checkpoint(args.checkpoint)
@@ -118,6 +152,8 @@ def main() -> None:
     for k, (wt, b) in enumerate(probes):
         print(f"  probe for fold {k}: logit(named) = {' + '.join(f'{v:.2f} r{i}' for i, v in enumerate(wt[1]))} "
               f"+ {b[1]:.2f}")
+    if args.figure:
+        figure(args.figure, loaded, probes)
 
 
 if __name__ == "__main__":
