@@ -65,18 +65,6 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50
     return np.stack([np.zeros(x.shape[1]), w[:-1]]).astype(np.float32), np.array([0.0, w[-1]], np.float32)
 
 
-def grounded(record: dict, maps, world, heads: Heads) -> bool | None:
-    """The attribution's verdict: P(named) at the named landmark above every other landmark's (None: not seen)."""
-    F, n = world.field_size, maps.relevance_map_w.shape[-1]
-    target = world.landmarks[int(record["landmark_index"])]
-    r, c = cell_of(target.x, target.y, F, n)
-    if not observed_cells(maps.semantic_map_w)[r, c]:
-        return None
-    p = positive_probability(maps.relevance_map_w, heads.grounding_w, heads.grounding_b)
-    others = [p[cell_of(lm.x, lm.y, F, n)] for lm in world.landmarks if lm.noun_phrase != target.noun_phrase]
-    return bool(p[r, c] > max(others, default=0.5))
-
-
 def figure(path: str, loaded: list, probes: list, rows: int = 4) -> None:
     """Each of the first `rows` episodes' final relevance map: its channels and the probe's P(named), with the
     named landmark (white star) and the others (red crosses); cells never covered are blank."""
@@ -132,15 +120,20 @@ def main() -> None:
         xy = [cells(e, t.maps, w) for e, t, w in folds[1 - k]]
         probes.append(fit_logistic(np.concatenate([x for x, _ in xy]), np.concatenate([y for _, y in xy])))
 
-    rows = {"untrained head" if not heads.grounding_trained else "trained head": [], "probe": []}
+    # the attribution's own verdicts (`Attribution.grounded`: P(named) at the named landmark above every other
+    # landmark's), read with the model's head as if trained and with the probe fitted on the other fold
+    own = "trained head" if heads.grounding_trained else "untrained head"
+    rows = {own: [], "probe": []}
     stages = Counter()
     for k in (0, 1):
-        probe_heads = replace(heads, grounding_w=probes[k][0], grounding_b=probes[k][1], grounding_trained=True)
-        for e, t, w in folds[k]:
-            rows["probe"].append(grounded(e, t.maps, w, probe_heads))
-            rows[next(iter(rows))].append(grounded(e, t.maps, w, heads))
-            if not e["success"]:
-                stages[attribute_record(e, t, probe_heads, config).stage] += 1
+        readers = {own: replace(heads, grounding_trained=True),
+                   "probe": replace(heads, grounding_w=probes[k][0], grounding_b=probes[k][1], grounding_trained=True)}
+        for e, t, _ in folds[k]:
+            for name, reader in readers.items():
+                a = attribute_record(e, t, reader, config)
+                rows[name].append(a.grounded if a.observed else None)
+                if name == "probe" and not e["success"]:
+                    stages[a.stage] += 1
     n_landmarks = np.mean([len(w.landmarks) for _, _, w in loaded])
     print(f"{args.checkpoint}: {len(loaded)} episodes, {n_landmarks:.1f} landmarks per world")
     for name, verdicts in rows.items():
