@@ -48,6 +48,28 @@ def apply_colormap(values: np.ndarray, vmin: float, vmax: float, cmap: str = "vi
     return _LUTS[cmap][index]
 
 
+def channels_rgb(maps: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Up to three channels (C, H, W) as one picture: channel 0 red, 1 green, 2 blue, each scaled to its own range
+    over the cells in `mask` (all cells when none is set). Returns the RGB uint8 (H, W, 3) and the brightest
+    channel's scaled value per cell (H, W) in [0, 1]."""
+    maps = np.asarray(maps, np.float64)[:3]
+    inside = np.ones(maps.shape[1:], bool) if mask is None or not np.asarray(mask).any() else np.asarray(mask, bool)
+    scaled = np.zeros((3, *maps.shape[1:]))
+    for k, m in enumerate(maps):
+        lo, hi = float(m[inside].min()), float(m[inside].max())
+        scaled[k] = np.clip((m - lo) / (hi - lo), 0.0, 1.0) if hi - lo > 1e-6 else 0.0
+    return (np.moveaxis(scaled, 0, -1) * 255).round().astype(np.uint8), scaled.max(0)
+
+
+def channels_legend_html(label: str, channels: int = 3) -> str:
+    """The legend of `channels_rgb`: one swatch per channel, and what the picture shows."""
+    swatches = "".join(f'<span style="display:inline-block;width:10px;height:10px;border-radius:2px;'
+                       f'background:rgb{rgb};margin:0 3px 0 6px;vertical-align:middle"></span>channel {k}'
+                       for k, rgb in enumerate(((255, 0, 0), (0, 255, 0), (0, 0, 255))[:channels]))
+    return (f'<div style="font-size:11px;line-height:1.4"><div>{swatches}</div>'
+            f'<div style="opacity:.75">{html.escape(label)}</div></div>')
+
+
 def css_gradient(cmap: str = "viridis") -> str:
     stops = ", ".join(f"rgb({r},{g},{b})" for r, g, b in COLORMAPS[cmap].astype(int))
     return f"linear-gradient(to right, {stops})"

@@ -8,8 +8,10 @@
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
 - goal_robot: the same on the robot-frame goal map the controller reads (drone at the centre, facing up).
   A model trained without J_plan has no trained goal head; its goal layers show channel 0 in both modes. Likewise
-  without J_ground the relevance layer shows the relevance map's channel 0, and without J_percept the semantic
-  layer the semantic map's channel 0 (an untrained head's reading says nothing; `gsmn.attribution.trained_heads`).
+  without J_percept the semantic layer shows the semantic map's channel 0 (an untrained head's reading says nothing;
+  `gsmn.attribution.trained_heads`). Without J_ground the relevance layer shows the relevance map's three channels
+  at once, as red, green and blue: no single channel need carry the grounding (a model trained so puts the named
+  landmark in whichever channel its goal filters read it from; docs/results.md, Figure 5).
 
 The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
 model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
@@ -27,6 +29,8 @@ import numpy as np
 
 from app.colors import (
     apply_colormap,
+    channels_legend_html,
+    channels_rgb,
     class_palette,
     colorbar_html,
     name_palette,
@@ -56,7 +60,7 @@ FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
 NO_GOAL_HEAD = "channel 0 (no J_plan)"
-NO_GROUNDING_HEAD = "channel 0 (no J_ground)"
+NO_GROUNDING_HEAD = "each scaled to its range over seen cells (no J_ground, so no P(named))"
 NO_PERCEPTION_HEAD = "channel 0 (no J_percept)"
 
 
@@ -82,7 +86,7 @@ class Layer:
     rgb: np.ndarray  # (H, W, 3) uint8, one pixel per cell, north-up (robot frame: facing up)
     alpha: np.ndarray  # (H, W) float in [0, 1]: how opaque each cell is on the ground (low values show the field)
     legend_html: str
-    values: np.ndarray | None = None  # (H, W) the scalar shown, for inspection
+    values: np.ndarray | None = None  # (H, W) the scalar shown, for inspection (None: several channels at once)
     frame: str = "world"  # "world" (north up, can lie on the ground), "robot" (ahead up) or "camera"
 
 
@@ -109,6 +113,14 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
     # landmarks show through where the map is low.
     heat = 0.12 + 0.88 * np.clip((values - vmin) / (vmax - vmin), 0.0, 1.0)
     return Layer(name, title or TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values, frame)
+
+
+def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: str, title: str) -> Layer:
+    """Up to three channels of a map as one picture (`app.colors.channels_rgb`), for a map no trained head reads;
+    opacity grows with the brightest channel, as `_scalar_layer`'s does with its value."""
+    rgb, brightest = channels_rgb(maps, observed)
+    return Layer(name, title, rgb, observed.astype(np.float32) * (0.12 + 0.88 * brightest),
+                 channels_legend_html(label, min(3, len(maps))))
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
@@ -142,9 +154,9 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         if heads.grounding_trained:
             relevance, relevance_label = positive_probability(relevance_w, heads.grounding_w, heads.grounding_b), \
                 "P(named)"
-        else:  # no J_ground: show what the goal filter reads
-            relevance, relevance_label = np.asarray(relevance_w[0], np.float32), NO_GROUNDING_HEAD
-            relevance_title = "Relevance: channel 0 (no grounding head, no J_ground)"
+        else:  # no J_ground: show all of what the goal filters read
+            relevance, relevance_label = None, NO_GROUNDING_HEAD
+            relevance_title = "Relevance: channels 0, 1, 2 as red, green, blue (no grounding head, no J_ground)"
         if heads.goal_trained:
             goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
             goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
@@ -159,7 +171,8 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
     ones = np.ones(goal.shape, np.float32)
     out = {"semantic": semantic,
            "relevance": _scalar_layer("relevance", relevance, observed.astype(np.float32), range_mode, labels[0],
-                                      relevance_title),
+                                      relevance_title) if relevance is not None else
+           _channels_layer("relevance", np.asarray(relevance_w, np.float32), observed, labels[0], relevance_title),
            "goal": _scalar_layer("goal", goal, ones, range_mode, labels[1], goal_title),
            "goal_robot": _scalar_layer("goal_robot", goal_robot, np.ones(goal_robot.shape, np.float32), range_mode,
                                        labels[2], frame="robot")}
@@ -207,6 +220,7 @@ class CellReport:
     p_named: float  # nan: the model has no trained grounding head
     p_goal: float  # nan: the model has no trained goal head
     truth: str | None  # the landmark whose radius covers the cell centre, if any
+    relevance: tuple[float, ...] = ()  # the relevance map's channels at the cell (what the grounding head reads)
 
 
 def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray,
@@ -228,4 +242,4 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
     return CellReport(r, c, cx, cy, bool(np.abs(feature).max() > 1e-6),
                       tuple((heads.class_names[k], float(probs[k])) for k in top) if heads.perception_trained else (),
                       float(p_named), float(p_goal),
-                      truth)
+                      truth, tuple(float(v) for v in relevance_w[:, r, c]))

@@ -333,8 +333,9 @@ def inspector_markdown(report: CellReport | None, step: int) -> str:
     seen = "" if report.observed else " (not seen yet)"
     truth = f"**{html.escape(report.truth)}**" if report.truth else "open ground"
     goal = "no P(goal) (trained without J_plan)" if math.isnan(report.p_goal) else f"P(goal) **{report.p_goal:.2f}**"
-    named = "no P(named) (trained without J_ground)" if math.isnan(report.p_named) else \
-        f"P(named) **{report.p_named:.2f}**"
+    channels = ", ".join(f"{v:.2f}" for v in report.relevance)
+    named = f"no P(named) (trained without J_ground), relevance channels {channels}" if math.isnan(report.p_named) \
+        else f"P(named) **{report.p_named:.2f}**"
     return (f"**Cell ({report.row}, {report.col})** at x {report.x:.1f} m, y {report.y:.1f} m, step {step}{seen}: "
             f"perception {classes}; {named}, {goal}; "
             f"truly there: {truth}.")

@@ -131,8 +131,9 @@ def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
 
 
 def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_themselves():
-    """Trained without J_ground, the relevance layer shows the relevance map's channel 0 and the inspector gives no
-    P(named); without J_percept, the semantic layer shows the semantic map's channel 0 and no landmark classes."""
+    """Trained without J_ground, the relevance layer shows the relevance map's three channels as red, green and blue
+    (each scaled to its range over seen cells) and the inspector gives the channels instead of a P(named); without
+    J_percept, the semantic layer shows the semantic map's channel 0 and no landmark classes."""
     semantic = np.full((32, 32, 32), 0.1, np.float16)
     semantic[0, 5, 6] = 3.0
     relevance = np.zeros((3, 32, 32), np.float32)
@@ -142,11 +143,22 @@ def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_th
     x, y = world.landmarks[0].x, world.landmarks[0].y
 
     no_ground = dataclasses.replace(_heads(), grounding_trained=False)
+    relevance[2, 7, 8] = 2.0  # the named landmark, say, in channel 2 alone
     layers = build_layers(semantic, relevance, goal, goal_r, no_ground, "probability", "fixed")
-    assert layers["relevance"].values[5, 6] == 9.0 and "J_ground" in layers["relevance"].title
-    assert "J_ground" in layers["relevance"].legend_html and "P(goal)" in layers["goal"].legend_html
+    rgb, alpha = layers["relevance"].rgb, layers["relevance"].alpha
+    assert tuple(rgb[5, 6]) == (255, 0, 0) and tuple(rgb[7, 8]) == (0, 255, 255)  # ch 1 is lowest at (5, 6) alone
+    assert tuple(rgb[0, 0]) == (0, 255, 0) and alpha[7, 8] == 1.0
+    assert "J_ground" in layers["relevance"].title and layers["relevance"].values is None
+    assert "J_ground" in layers["relevance"].legend_html and "channel 2" in layers["relevance"].legend_html
+    assert "P(goal)" in layers["goal"].legend_html
+    semantic_unseen = semantic.copy()
+    semantic_unseen[:, 7:] = 0  # cells never seen neither show nor set a channel's range
+    layers = build_layers(semantic_unseen, relevance, goal, goal_r, no_ground, "probability", "fixed")
+    assert layers["relevance"].alpha[7, 8] == 0.0 and tuple(layers["relevance"].rgb[5, 6]) == (255, 0, 0)
+    assert tuple(layers["relevance"].rgb[0, 0]) == (0, 255, 0)  # channel 2 is flat over seen cells: all zero
     report = inspect_cell(x, y, semantic, relevance, goal, no_ground, world)
-    assert math.isnan(report.p_named) and report.classes and "no P(named)" in inspector_markdown(report, 0)
+    assert math.isnan(report.p_named) and report.classes and len(report.relevance) == 3
+    assert "no P(named)" in inspector_markdown(report, 0) and "relevance channels" in inspector_markdown(report, 0)
 
     no_percept = dataclasses.replace(_heads(), perception_trained=False)
     layers = build_layers(semantic, relevance, goal, goal_r, no_percept, "probability", "fixed")
