@@ -8,6 +8,12 @@ so each episode is read by a probe fitted on the other half. It prints how often
 every other landmark (the attribution's "grounded"), with the probe and with the untrained head, and the failures'
 attributed stages with the probe standing in for the head. `--figure PATH` draws the first episodes' final
 relevance maps, channel by channel, beside the probe's P(named), the landmarks marked (needs matplotlib).
+`--verdicts PATH` writes each episode's verdicts as JSON; `--paired PATH` reads another model's and sets the two
+probes' verdicts side by side over the episodes both saw (an exact sign test), the same method on both models:
+
+    python scripts/probe_grounding.py --checkpoint checkpoints/table2/gsmn --record runs/gsmn_record \
+        --evaluation checkpoints/table2/gsmn/evaluation.json --verdicts runs/probe_gsmn.json
+    python scripts/probe_grounding.py --checkpoint checkpoints/table2/no-ground ... --paired runs/probe_gsmn.json
 
     python scripts/probe_grounding.py --checkpoint checkpoints/table2/no-ground \
         --record runs/table2/no-ground/record --evaluation checkpoints/table2/no-ground/evaluation.json
@@ -35,6 +41,7 @@ from gsmn.attribution import (
     trace_path,
 )
 from gsmn.model.checkpoint import load_checkpoint
+from gsmn.task.metrics import sign_test
 from gsmn.world.spec import world_for_env
 
 
@@ -103,6 +110,8 @@ def main() -> None:
     ap.add_argument("--record", required=True, help="the maps recorded by the evaluation (--record)")
     ap.add_argument("--evaluation", required=True, help="the evaluation's JSON (its episodes)")
     ap.add_argument("--figure", default=None, help="draw the first episodes' relevance maps to this PNG")
+    ap.add_argument("--verdicts", default=None, help="write each episode's verdicts to this JSON")
+    ap.add_argument("--paired", default=None, help="another model's --verdicts JSON: compare the probes' verdicts")
     args = ap.parse_args()
 
     model, config, *_ = load_checkpoint(args.checkpoint)
@@ -123,7 +132,7 @@ def main() -> None:
     # the attribution's own verdicts (`Attribution.grounded`: P(named) at the named landmark above every other
     # landmark's), read with the model's head as if trained and with the probe fitted on the other fold
     own = "trained head" if heads.grounding_trained else "untrained head"
-    rows = {own: [], "probe": []}
+    rows = {own: {}, "probe": {}}  # env id -> grounded (None: the named landmark never seen)
     stages = Counter()
     for k in (0, 1):
         readers = {own: replace(heads, grounding_trained=True),
@@ -131,13 +140,13 @@ def main() -> None:
         for e, t, _ in folds[k]:
             for name, reader in readers.items():
                 a = attribute_record(e, t, reader, config)
-                rows[name].append(a.grounded if a.observed else None)
+                rows[name][int(e["env_id"])] = a.grounded if a.observed else None
                 if name == "probe" and not e["success"]:
                     stages[a.stage] += 1
     n_landmarks = np.mean([len(w.landmarks) for _, _, w in loaded])
     print(f"{args.checkpoint}: {len(loaded)} episodes, {n_landmarks:.1f} landmarks per world")
     for name, verdicts in rows.items():
-        seen = [v for v in verdicts if v is not None]
+        seen = [v for v in verdicts.values() if v is not None]
         print(f"  named landmark above every other landmark ({name}): {sum(seen)} of {len(seen)} episodes where "
               f"it was seen ({100 * sum(seen) / max(len(seen), 1):.1f} %)")
     print("  failures by stage with the probe as grounding head: "
@@ -145,8 +154,28 @@ def main() -> None:
     for k, (wt, b) in enumerate(probes):
         print(f"  probe for fold {k}: logit(named) = {' + '.join(f'{v:.2f} r{i}' for i, v in enumerate(wt[1]))} "
               f"+ {b[1]:.2f}")
+    if args.verdicts:
+        with open(args.verdicts, "w") as f:
+            json.dump({"checkpoint": args.checkpoint, "verdicts": rows}, f)
+        print(f"wrote {args.verdicts}")
+    if args.paired:
+        print(paired(rows["probe"], args.paired, args.checkpoint))
     if args.figure:
         figure(args.figure, loaded, probes)
+
+
+def paired(mine: dict[int, bool | None], path: str, name: str) -> str:
+    """This model's probe verdicts beside another's (a --verdicts file) over the episodes both saw the named
+    landmark in: how many only one of them grounds, and the exact sign test of those."""
+    other = json.loads(open(path).read())
+    theirs = {int(k): v for k, v in other["verdicts"]["probe"].items()}
+    both = [k for k in mine if mine[k] is not None and theirs.get(k) is not None]
+    if not both:
+        raise SystemExit(f"{path} shares no episode with {name} where both saw the named landmark")
+    only_mine, only_theirs = sum(mine[k] and not theirs[k] for k in both), sum(theirs[k] and not mine[k] for k in both)
+    p = sign_test(only_mine, only_theirs)
+    return (f"  probe, paired with {other['checkpoint']} over {len(both)} episodes: grounded by {name} only "
+            f"{only_mine}, by {other['checkpoint']} only {only_theirs}, sign test p {p:.2g}")
 
 
 if __name__ == "__main__":

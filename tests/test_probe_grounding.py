@@ -32,3 +32,12 @@ def test_probe_finds_nothing_in_noise():
     weight, bias = probe.fit_logistic(x, y)
     p = positive_probability(x.T.reshape(3, 40, 50), weight, bias).reshape(-1)
     assert 0.4 < 0.5 * ((p[y] > 0.5).mean() + (p[~y] <= 0.5).mean()) < 0.6
+
+
+def test_paired_counts_the_episodes_only_one_model_grounds(tmp_path):
+    other = tmp_path / "other.json"
+    other.write_text('{"checkpoint": "b", "verdicts": {"probe": {"1": true, "2": true, "3": false, "4": null, '
+                     '"5": true}}}')
+    mine = {1: True, 2: False, 3: True, 4: True, 5: None, 6: True}  # 4-6: not seen by one of the two, or absent
+    line = probe.paired(mine, str(other), "a")
+    assert "over 3 episodes" in line and "by a only 1, by b only 1" in line and "p 1" in line

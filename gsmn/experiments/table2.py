@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any
 
 from gsmn.config import RunConfig, preset, with_overrides
+from gsmn.task.metrics import sign_test
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_SHIP = ROOT / "checkpoints" / "table2"
@@ -786,17 +787,6 @@ PAPER = {  # Table 2 of the paper (development results): success, landmark succe
     "no-lang": (41.20, 57.20, 6.62, 3.37), "no-percept": (50.00, 63.73, 5.89, 2.55),
     "pose-noise": (74.40, 85.33, 3.01, 1.41),
 }
-
-
-def sign_test(fixed: int, broken: int) -> float:
-    """Two-sided exact sign test of `fixed` against `broken` paired outcomes."""
-    from math import comb
-
-    n = fixed + broken
-    if n == 0:
-        return 1.0
-    tail = sum(comb(n, k) for k in range(min(fixed, broken) + 1)) / 2**n
-    return min(1.0, 2 * tail)
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
