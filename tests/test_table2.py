@@ -95,6 +95,26 @@ def _git(repo: Path, *args: str) -> str:
     return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout
 
 
+def test_a_progress_bar_times_the_stage_it_shows_not_the_programme():
+    """Elapsed time, rate and ETA restart with each stage, and a resumed stage's earlier work is not read as speed."""
+    import io
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=1, file=io.StringIO(), mininterval=0)
+    table2.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 0, 600)
+    bar.start_t -= 100  # 100 s into the epoch
+    table2.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 50, 600)
+    assert "50/600 [01:40<18:20" in tqdm.format_meter(**bar.format_dict)  # 0.5 batches/s: 550 left in 1100 s
+    table2.show_progress(bar, "gsmn", "evaluated", 150, 300)  # a resumed evaluation, half done before
+    assert bar.format_dict["elapsed"] < 5 and bar.desc == "gsmn: evaluated" and bar.total == 300
+    bar.start_t -= 10
+    table2.show_progress(bar, "gsmn", "evaluated", 160, 300)
+    meter = tqdm.format_meter(**bar.format_dict)
+    assert "160/300 [00:10<02:20" in meter  # 10 episodes in 10 s, so 140 left in 140 s (not 160 in 10 s)
+    bar.close()
+
+
 def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine(tmp_path, monkeypatch):
     """Supervised learning and one DAggerFM iteration, each stage copied and committed; then the machine is lost
     (run folders and expert data gone): a new start restores the DAggerFM run from the commit, rebuilds only the dev

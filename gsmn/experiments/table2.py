@@ -715,10 +715,7 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
                                    f"{recipe.control_gate:.0f} %: the ablations' drops would be noise, so no further "
                                    "system starts and no Table 1 evaluation either (docs/training.md)")
             for name, bar in bars.items():
-                desc, done, total = describe(layout, BY_NAME[name], recipe)
-                bar.set_description_str(f"{name}: {desc}", refresh=False)
-                bar.total, bar.n = max(total, 1), done
-                bar.refresh()
+                show_progress(bar, name, *describe(layout, BY_NAME[name], recipe))
             time.sleep(2)
     finally:
         for process, _ in running.values():  # stopped (Ctrl-C, SIGTERM): the children save and stop too
@@ -732,6 +729,19 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
         return 1
     print(table_markdown(layout.ship))
     return 0
+
+
+def show_progress(bar: Any, name: str, desc: str, done: int, total: int) -> None:
+    """Move a system's tqdm bar to where its pipeline stands. A new stage (a new description) restarts the bar's
+    clock, and what the stage had done before the bar saw it (a resumed evaluation) counts as its start, so the
+    elapsed time, rate and ETA shown are the current stage's."""
+    label = f"{name}: {desc}"
+    if label != bar.desc:
+        bar.reset(total=max(total, 1))
+        bar.set_description_str(label, refresh=False)
+        bar.initial = done
+    bar.total, bar.n = max(total, 1), done
+    bar.refresh()
 
 
 def describe(layout: Layout, system: System, recipe: Recipe) -> tuple[str, int, int]:
