@@ -48,24 +48,45 @@ def apply_colormap(values: np.ndarray, vmin: float, vmax: float, cmap: str = "vi
     return _LUTS[cmap][index]
 
 
-def channels_rgb(maps: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def channels_rgb(maps: np.ndarray, mask: np.ndarray | None = None,
+                 shared: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Up to three channels (C, H, W) as one picture: channel 0 red, 1 green, 2 blue, each scaled to its own range
-    over the cells in `mask` (all cells when none is set). Returns the RGB uint8 (H, W, 3) and the brightest
+    over the cells in `mask` (all cells when none is set), or all to one range when `shared` (so a channel that
+    barely varies stays flat instead of being stretched). Returns the RGB uint8 (H, W, 3) and the brightest
     channel's scaled value per cell (H, W) in [0, 1]."""
     maps = np.asarray(maps, np.float64)[:3]
     inside = np.ones(maps.shape[1:], bool) if mask is None or not np.asarray(mask).any() else np.asarray(mask, bool)
     scaled = np.zeros((3, *maps.shape[1:]))
     for k, m in enumerate(maps):
-        lo, hi = float(m[inside].min()), float(m[inside].max())
+        lo, hi = (float(maps[:, inside].min()), float(maps[:, inside].max())) if shared else \
+            (float(m[inside].min()), float(m[inside].max()))
         scaled[k] = np.clip((m - lo) / (hi - lo), 0.0, 1.0) if hi - lo > 1e-6 else 0.0
     return (np.moveaxis(scaled, 0, -1) * 255).round().astype(np.uint8), scaled.max(0)
 
 
-def channels_legend_html(label: str, channels: int = 3) -> str:
-    """The legend of `channels_rgb`: one swatch per channel, and what the picture shows."""
+def principal_components(maps: np.ndarray, mask: np.ndarray | None = None, k: int = 3) -> np.ndarray:
+    """A many-channel map (C, H, W) reduced to its k principal components over the cells in `mask` (all cells when
+    none is set), as a (k, H, W) map for `channels_rgb`: cells of like colour hold like features. Each component's
+    sign is set so that its largest loading is positive, which keeps the colours steady from one step to the next.
+    Draw them with `channels_rgb(..., shared=True)`, so that a weak component stays weak."""
+    maps = np.asarray(maps, np.float64)
+    C, H, W = maps.shape
+    inside = np.ones((H, W), bool) if mask is None or not np.asarray(mask).any() else np.asarray(mask, bool)
+    x = maps.reshape(C, -1).T  # (H*W, C)
+    centre = x[inside.reshape(-1)].mean(0)
+    _, _, vt = np.linalg.svd(x[inside.reshape(-1)] - centre, full_matrices=False)
+    vt = vt[:k] * np.sign(vt[:k][np.arange(min(k, len(vt))), np.abs(vt[:k]).argmax(1)])[:, None]
+    out = np.zeros((k, H, W))
+    out[: len(vt)] = ((x - centre) @ vt.T).T.reshape(len(vt), H, W)
+    return out
+
+
+def channels_legend_html(label: str, channels: int = 3, name: str = "channel", start: int = 0) -> str:
+    """The legend of `channels_rgb`: one swatch per channel ("channel 0", or `name` and the index from `start`),
+    and what the picture shows."""
     swatches = "".join(f'<span style="display:inline-block;width:10px;height:10px;border-radius:2px;'
-                       f'background:rgb{rgb};margin:0 3px 0 6px;vertical-align:middle"></span>channel {k}'
-                       for k, rgb in enumerate(((255, 0, 0), (0, 255, 0), (0, 0, 255))[:channels]))
+                       f'background:rgb{rgb};margin:0 3px 0 6px;vertical-align:middle"></span>{name} {k}'
+                       for k, rgb in enumerate(((255, 0, 0), (0, 255, 0), (0, 0, 255))[:channels], start))
     return (f'<div style="font-size:11px;line-height:1.4"><div>{swatches}</div>'
             f'<div style="opacity:.75">{html.escape(label)}</div></div>')
 

@@ -8,7 +8,8 @@
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
 - goal_robot: the same on the robot-frame goal map the controller reads (drone at the centre, facing up).
   A model trained without J_plan has no trained goal head; its goal layers show channel 0 in both modes. Likewise
-  without J_percept the semantic layer shows the semantic map's channel 0 (an untrained head's reading says nothing;
+  without J_percept the semantic layer shows the semantic map's 32 channels reduced to their three principal
+  components over the seen cells, as red, green and blue (an untrained head's reading says nothing;
   `gsmn.attribution.trained_heads`). Without J_ground the relevance layer shows the relevance map's three channels
   at once, as red, green and blue: no single channel need carry the grounding (a model trained so puts the named
   landmark in whichever channel its goal filters read it from; docs/results.md, Figure 5).
@@ -34,6 +35,7 @@ from app.colors import (
     class_palette,
     colorbar_html,
     name_palette,
+    principal_components,
     semantic_classes,
     semantic_legend_html,
     semantic_rgb,
@@ -61,7 +63,8 @@ VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
 NO_GOAL_HEAD = "channel 0 (no J_plan)"
 NO_GROUNDING_HEAD = "each scaled to its range over seen cells (no J_ground, so no P(named))"
-NO_PERCEPTION_HEAD = "channel 0 (no J_percept)"
+NO_PERCEPTION_HEAD = ("principal components over this frame's seen cells, on one scale; like colours, like "
+                      "features (no J_percept, so no landmark classes)")
 
 
 @dataclass(frozen=True)
@@ -115,12 +118,13 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
     return Layer(name, title or TITLES[name], apply_colormap(values, vmin, vmax), alpha * heat, legend, values, frame)
 
 
-def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: str, title: str) -> Layer:
+def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: str, title: str,
+                    channel: str = "channel", start: int = 0, shared: bool = False) -> Layer:
     """Up to three channels of a map as one picture (`app.colors.channels_rgb`), for a map no trained head reads;
     opacity grows with the brightest channel, as `_scalar_layer`'s does with its value."""
-    rgb, brightest = channels_rgb(maps, observed)
+    rgb, brightest = channels_rgb(maps, observed, shared)
     return Layer(name, title, rgb, observed.astype(np.float32) * (0.12 + 0.88 * brightest),
-                 channels_legend_html(label, min(3, len(maps))))
+                 channels_legend_html(label, min(3, len(maps)), channel, start))
 
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
@@ -145,10 +149,10 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
                          semantic_rgb(classes, confidence, observed, palette, len(heads.class_names)),
                          observed.astype(np.float32), semantic_legend_html(classes, observed, palette, names),
                          confidence)
-    else:  # no J_percept: the head's classes say nothing; show the map itself
-        semantic = _scalar_layer("semantic", np.asarray(semantic_w[0], np.float32), observed.astype(np.float32),
-                                 "frame", NO_PERCEPTION_HEAD,
-                                 "Semantic map: channel 0 (no perception head, no J_percept)")
+    else:  # no J_percept: the head's classes say nothing; show the map itself, its features reduced to three
+        semantic = _channels_layer("semantic", principal_components(semantic_w, observed), observed,
+                                   NO_PERCEPTION_HEAD, "Semantic map: its features' 3 main components as red, green, "
+                                   "blue (no perception head, no J_percept)", "component", 1, shared=True)
     relevance_title = goal_title = None
     if value_mode == "probability":
         if heads.grounding_trained:

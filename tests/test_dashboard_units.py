@@ -133,7 +133,7 @@ def test_a_model_without_a_trained_goal_head_shows_no_p_goal():
 def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_themselves():
     """Trained without J_ground, the relevance layer shows the relevance map's three channels as red, green and blue
     (each scaled to its range over seen cells) and the inspector gives the channels instead of a P(named); without
-    J_percept, the semantic layer shows the semantic map's channel 0 and no landmark classes."""
+    J_percept, the semantic layer shows the semantic map's main components and the inspector no landmark classes."""
     semantic = np.full((32, 32, 32), 0.1, np.float16)
     semantic[0, 5, 6] = 3.0
     relevance = np.zeros((3, 32, 32), np.float32)
@@ -162,7 +162,8 @@ def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_th
 
     no_percept = dataclasses.replace(_heads(), perception_trained=False)
     layers = build_layers(semantic, relevance, goal, goal_r, no_percept, "probability", "fixed")
-    assert layers["semantic"].values[5, 6] == 3.0 and "J_percept" in layers["semantic"].title
+    assert tuple(layers["semantic"].rgb[5, 6]) == (255, 0, 0) and tuple(layers["semantic"].rgb[0, 0]) == (0, 0, 0)
+    assert "J_percept" in layers["semantic"].title and "component 1" in layers["semantic"].legend_html
     assert "P(named)" in layers["relevance"].legend_html
     report = inspect_cell(x, y, semantic, relevance, goal, no_percept, world)
     assert report.classes == () and "J_percept" in inspector_markdown(report, 0)
@@ -517,3 +518,25 @@ def test_the_ground_surfaces_are_farther_apart_than_the_depth_buffer_resolves():
         return z * z / (near * 2**24)
 
     assert resolution(CAMERA_NEAR) < gap / 4 < resolution(0.01) and CAMERA_FAR > 100  # the field fits well inside
+
+
+def test_principal_components_colour_like_features_alike_and_keep_their_colours():
+    """Without a perception head the semantic map is drawn by its features' principal components: cells holding
+    the same landmark's features share a colour, two landmarks differ, and a step that adds a little to the map
+    (or shifts it) keeps the colours."""
+    from app.colors import channels_rgb, principal_components
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=32), rng.normal(size=32)
+    semantic = 0.05 * rng.normal(size=(32, 20, 20))
+    semantic[:, 2:5, 2:5] += a[:, None, None]
+    semantic[:, 12:16, 10:14] += b[:, None, None]
+    seen = np.zeros((20, 20), bool)
+    seen[:, :16] = True
+    rgb, _ = channels_rgb(principal_components(semantic, seen), seen, shared=True)
+    first, second, ground = rgb[3, 3].astype(int), rgb[13, 11].astype(int), rgb[8, 8].astype(int)
+    assert np.abs(rgb[2:5, 2:5].astype(int) - first).max() < 40 and np.abs(rgb[12:16, 10:14] - second).max() < 40
+    assert min(np.abs(first - second).sum(), np.abs(first - ground).sum(), np.abs(second - ground).sum()) > 100
+    later = semantic + 0.01 * rng.normal(size=semantic.shape) + 0.3  # the next step: a little noise, a shift
+    rgb_later, _ = channels_rgb(principal_components(later, seen), seen, shared=True)
+    assert np.abs(rgb_later[seen].astype(int) - rgb[seen]).mean() < 10  # no component flipped its sign
