@@ -48,6 +48,11 @@ def apply_colormap(values: np.ndarray, vmin: float, vmax: float, cmap: str = "vi
     return _LUTS[cmap][index]
 
 
+def _cells(mask: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The cells a picture's ranges are taken over: `mask` where it holds any, else all of them."""
+    return np.asarray(mask, bool) if mask is not None and np.asarray(mask).any() else np.ones(shape, bool)
+
+
 def channels_rgb(maps: np.ndarray, mask: np.ndarray | None = None,
                  shared: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Up to three channels (C, H, W) as one picture: channel 0 red, 1 green, 2 blue, each scaled to its own range
@@ -55,11 +60,11 @@ def channels_rgb(maps: np.ndarray, mask: np.ndarray | None = None,
     barely varies stays flat instead of being stretched). Returns the RGB uint8 (H, W, 3) and the brightest
     channel's scaled value per cell (H, W) in [0, 1]."""
     maps = np.asarray(maps, np.float64)[:3]
-    inside = np.ones(maps.shape[1:], bool) if mask is None or not np.asarray(mask).any() else np.asarray(mask, bool)
+    inside = _cells(mask, maps.shape[1:])
+    ranges = [(maps[:, inside].min(), maps[:, inside].max())] * len(maps) if shared else \
+        [(m[inside].min(), m[inside].max()) for m in maps]
     scaled = np.zeros((3, *maps.shape[1:]))
-    for k, m in enumerate(maps):
-        lo, hi = (float(maps[:, inside].min()), float(maps[:, inside].max())) if shared else \
-            (float(m[inside].min()), float(m[inside].max()))
+    for k, (m, (lo, hi)) in enumerate(zip(maps, ranges, strict=True)):
         scaled[k] = np.clip((m - lo) / (hi - lo), 0.0, 1.0) if hi - lo > 1e-6 else 0.0
     return (np.moveaxis(scaled, 0, -1) * 255).round().astype(np.uint8), scaled.max(0)
 
@@ -71,11 +76,11 @@ def principal_components(maps: np.ndarray, mask: np.ndarray | None = None, k: in
     Draw them with `channels_rgb(..., shared=True)`, so that a weak component stays weak."""
     maps = np.asarray(maps, np.float64)
     C, H, W = maps.shape
-    inside = np.ones((H, W), bool) if mask is None or not np.asarray(mask).any() else np.asarray(mask, bool)
     x = maps.reshape(C, -1).T  # (H*W, C)
-    centre = x[inside.reshape(-1)].mean(0)
-    _, _, vt = np.linalg.svd(x[inside.reshape(-1)] - centre, full_matrices=False)
-    vt = vt[:k] * np.sign(vt[:k][np.arange(min(k, len(vt))), np.abs(vt[:k]).argmax(1)])[:, None]
+    seen = x[_cells(mask, (H, W)).reshape(-1)]
+    centre = seen.mean(0)
+    vt = np.linalg.svd(seen - centre, full_matrices=False)[2][:k]
+    vt *= np.sign(vt[np.arange(len(vt)), np.abs(vt).argmax(1)])[:, None]
     out = np.zeros((k, H, W))
     out[: len(vt)] = ((x - centre) @ vt.T).T.reshape(len(vt), H, W)
     return out

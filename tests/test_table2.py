@@ -86,7 +86,9 @@ def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anythi
 
 
 def test_the_paired_figures_of_the_table():
+    assert table2.sign_test(0, 0) == 1.0
     assert abs(table2.sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
+    assert table2.sign_test(0, 10) < 0.002 and table2.sign_test(5, 5) == 1.0
     low, high = table2.wilson(240, 300)
     assert 75.0 < low < 75.2 and 84.0 < high < 84.2  # p 0.8 at n 300
 
