@@ -114,6 +114,10 @@ def test_a_progress_bar_times_the_stage_it_shows_not_the_programme():
     table2.show_progress(bar, "gsmn", "evaluated", 160, 300)
     meter = tqdm.format_meter(**bar.format_dict)
     assert "160/300 [00:10<02:20" in meter  # 10 episodes in 10 s, so 140 left in 140 s (not 160 in 10 s)
+    table2.show_progress(bar, "gsmn", "evaluated", 20, 300)  # restarted from the stage copy: the count went back
+    bar.start_t -= 10
+    table2.show_progress(bar, "gsmn", "evaluated", 30, 300)
+    assert "30/300 [00:10<04:30" in tqdm.format_meter(**bar.format_dict)  # 10 in 10 s, never a negative rate
     bar.close()
 
 

@@ -734,9 +734,10 @@ def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: lis
 def show_progress(bar: Any, name: str, desc: str, done: int, total: int) -> None:
     """Move a system's tqdm bar to where its pipeline stands. A new stage (a new description) restarts the bar's
     clock, and what the stage had done before the bar saw it (a resumed evaluation) counts as its start, so the
-    elapsed time, rate and ETA shown are the current stage's."""
+    elapsed time, rate and ETA shown are the current stage's. A count that goes back (a stage restarted from its
+    stage copy, after the bar read the stopped run's progress file) restarts the clock too."""
     label = f"{name}: {desc}"
-    if label != bar.desc:
+    if label != bar.desc or done < bar.initial:
         bar.reset(total=max(total, 1))
         bar.set_description_str(label, refresh=False)
         bar.initial = done
