@@ -11,7 +11,7 @@ relevance maps, channel by channel, beside the probe's P(named), the landmarks m
 `--verdicts PATH` writes each episode's verdicts as JSON; `--paired PATH` reads another model's and sets the two
 probes' verdicts side by side over the episodes both saw (an exact sign test), the same method on both models:
 
-    python scripts/probe_grounding.py --checkpoint checkpoints/table2/gsmn --record runs/gsmn_record \
+    python scripts/probe_grounding.py --checkpoint checkpoints/table2/gsmn --record runs/table2/gsmn/record \
         --evaluation checkpoints/table2/gsmn/evaluation.json --verdicts runs/probe_gsmn.json
     python scripts/probe_grounding.py --checkpoint checkpoints/table2/no-ground ... --paired runs/probe_gsmn.json
 
@@ -28,6 +28,7 @@ import argparse
 import json
 from collections import Counter
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -167,7 +168,7 @@ def main() -> None:
 def paired(mine: dict[int, bool | None], path: str, name: str) -> str:
     """This model's probe verdicts beside another's (a --verdicts file) over the episodes both saw the named
     landmark in: how many only one of them grounds, and the exact sign test of those."""
-    other = json.loads(open(path).read())
+    other = json.loads(Path(path).read_text())
     theirs = {int(k): v for k, v in other["verdicts"]["probe"].items()}
     both = [k for k in mine if mine[k] is not None and theirs.get(k) is not None]
     if not both:
