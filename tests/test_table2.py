@@ -538,3 +538,26 @@ def test_the_programme_ends_when_the_control_is_below_the_gate(tmp_path, monkeyp
     monkeypatch.setattr(table2.subprocess, "Popen", Finished)
     assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
     assert started == ["gsmn", "no-plan"]
+
+
+def test_the_orderings_pair_the_ablations_and_split_what_each_breaks(tmp_path):
+    """`--table`'s orderings: the measured ablations by drop, each pair's sign test over the same environments,
+    and the control's successes each ablation breaks, by its attributed stage; pose noise is not an objective."""
+    def kept(name: str, outcomes: str, stages: str = "") -> None:
+        stage = iter(stages.split())
+        episodes = [{"env_id": 85 + i, "success": ok == "+", "stage": None if ok == "+" else next(stage)}
+                    for i, ok in enumerate(outcomes)]
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "evaluation.json").write_text(json.dumps({"system": name, "episodes": episodes}))
+
+    assert table2.orderings_markdown(tmp_path).startswith("Orderings: not yet")
+    kept("gsmn", "+++++-", "goal")
+    kept("no-plan", "--+++-", "goal_or_control perception goal_or_control")
+    kept("no-percept", "+-+++-", "perception_or_grounding goal")
+    kept("pose-noise", "------", "goal " * 6)
+    lines = table2.orderings_markdown(tmp_path).splitlines()
+    assert lines == [
+        "Ablations by their drop from the control: GSMN without J_plan (50.0 %), GSMN without J_percept (66.7 %)",
+        "GSMN without J_percept succeeds where GSMN without J_plan fails in 1, the reverse in 0: sign test p 1",
+        "GSMN without J_plan breaks 2 of the control's successes: goal_or_control 1, perception 1",
+        "GSMN without J_percept breaks 1 of the control's successes: perception_or_grounding 1"]

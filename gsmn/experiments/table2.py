@@ -853,6 +853,36 @@ def table_markdown(ship: Path) -> str:
     return "\n".join(lines)
 
 
+def orderings_markdown(ship: Path) -> str:
+    """The paper's orderings tested on the kept evaluations: the measured ablations in the order of their drop, each
+    pair of them compared over the same environments (sign test), and the environments each ablation breaks (the
+    control succeeds, it fails) by its attributed stage."""
+    found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())["episodes"]
+             for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+    control = found.get(SYSTEMS[0].name)
+    ablations = [s for s in SYSTEMS[1:] if s.name in found and not s.name.startswith("pose")]
+    if control is None or not ablations:
+        return "Orderings: not yet (the control and at least one ablation evaluated)."
+
+    def rate(name: str) -> float:
+        return sum(e["success"] for e in found[name]) / len(found[name])
+    ranked = sorted(ablations, key=lambda s: rate(s.name))  # the largest drop first
+    lines = ["Ablations by their drop from the control: "
+             + ", ".join(f"{s.label} ({100 * rate(s.name):.1f} %)" for s in ranked)]
+    for i, a in enumerate(ranked):
+        for b in ranked[i + 1:]:
+            worse, better = paired(found[a.name], found[b.name])  # b succeeds where a fails, and the reverse
+            lines.append(f"{b.label} succeeds where {a.label} fails in {worse}, the reverse in {better}: sign test "
+                         f"p {sign_test(worse, better):.2g}")
+    for s in ablations:
+        outcome = {e["env_id"]: e for e in found[s.name]}
+        broken = Counter(outcome[e["env_id"]].get("stage") for e in control
+                         if e["success"] and e["env_id"] in outcome and not outcome[e["env_id"]]["success"])
+        lines.append(f"{s.label} breaks {sum(broken.values())} of the control's successes: "
+                     + (", ".join(f"{stage} {n}" for stage, n in broken.most_common()) or "none"))
+    return "\n".join(lines)
+
+
 def paired(control: list[dict], other: list[dict]) -> tuple[int, int]:
     """(fixed, broken) over the environments both flew: `other` succeeds where `control` fails, and the reverse."""
     by_env = {e["env_id"]: e["success"] for e in control}
@@ -935,6 +965,8 @@ def cmd_table2(args) -> int:
     recipe = RECIPES[args.recipe]
     if args.table:
         print(table_markdown(layout.ship))
+        print()
+        print(orderings_markdown(layout.ship))
         print()
         print(table1_markdown(layout.ship))
         return 0
