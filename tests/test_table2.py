@@ -552,12 +552,19 @@ def test_the_orderings_pair_the_ablations_and_split_what_each_breaks(tmp_path):
 
     assert table2.orderings_markdown(tmp_path).startswith("Orderings: not yet")
     kept("gsmn", "+++++-", "goal")
-    kept("no-plan", "--+++-", "goal_or_control perception goal_or_control")
-    kept("no-percept", "+-+++-", "perception_or_grounding goal")
+    kept("no-plan", "+-+++-", "perception_or_grounding goal")  # first in SYSTEMS, the smaller drop: ranked second
+    kept("no-percept", "--+++-", "goal perception goal")
+    kept("no-lang", "-+++++", "goal")  # env 90 only in the control's evaluation: not paired
+    (tmp_path / "no-lang" / "evaluation.json").write_text(json.dumps({"episodes": [
+        {"env_id": 85 + i, "success": i > 0, "stage": None} for i in range(5)]}))  # flown without attribution
     kept("pose-noise", "------", "goal " * 6)
     lines = table2.orderings_markdown(tmp_path).splitlines()
     assert lines == [
-        "Ablations by their drop from the control: GSMN without J_plan (50.0 %), GSMN without J_percept (66.7 %)",
-        "GSMN without J_percept succeeds where GSMN without J_plan fails in 1, the reverse in 0: sign test p 1",
-        "GSMN without J_plan breaks 2 of the control's successes: goal_or_control 1, perception 1",
-        "GSMN without J_percept breaks 1 of the control's successes: perception_or_grounding 1"]
+        "Ablations by success rate, the largest drop first (control 83.3 %): GSMN without J_percept (50.0 %), "
+        "GSMN without J_plan (66.7 %), GSMN without J_lang (80.0 %)",
+        "GSMN without J_plan succeeds where GSMN without J_percept fails in 1, the reverse in 0: sign test p 1",
+        "GSMN without J_lang succeeds where GSMN without J_percept fails in 1, the reverse in 0: sign test p 1",
+        "GSMN without J_lang succeeds where GSMN without J_plan fails in 1, the reverse in 1: sign test p 1",
+        "GSMN without J_percept breaks 2 of the control's successes: goal 1, perception 1",
+        "GSMN without J_plan breaks 1 of the control's successes: perception_or_grounding 1",
+        "GSMN without J_lang breaks 1 of the control's successes: no stage attributed"]

@@ -860,26 +860,27 @@ def orderings_markdown(ship: Path) -> str:
     found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())["episodes"]
              for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
     control = found.get(SYSTEMS[0].name)
-    ablations = [s for s in SYSTEMS[1:] if s.name in found and not s.name.startswith("pose")]
+    ablations = [s for s in SYSTEMS[1:] if s.name in found and any(k.startswith("loss.") for k in s.switch)]
     if control is None or not ablations:
-        return "Orderings: not yet (the control and at least one ablation evaluated)."
+        return "Orderings: not yet (they need the control and at least one ablation evaluated)."
 
     def rate(name: str) -> float:
         return sum(e["success"] for e in found[name]) / len(found[name])
     ranked = sorted(ablations, key=lambda s: rate(s.name))  # the largest drop first
-    lines = ["Ablations by their drop from the control: "
+    lines = [f"Ablations by success rate, the largest drop first (control {100 * rate(SYSTEMS[0].name):.1f} %): "
              + ", ".join(f"{s.label} ({100 * rate(s.name):.1f} %)" for s in ranked)]
     for i, a in enumerate(ranked):
         for b in ranked[i + 1:]:
-            worse, better = paired(found[a.name], found[b.name])  # b succeeds where a fails, and the reverse
-            lines.append(f"{b.label} succeeds where {a.label} fails in {worse}, the reverse in {better}: sign test "
-                         f"p {sign_test(worse, better):.2g}")
-    for s in ablations:
+            b_wins, a_wins = paired(found[a.name], found[b.name])
+            lines.append(f"{b.label} succeeds where {a.label} fails in {b_wins}, the reverse in {a_wins}: sign test "
+                         f"p {sign_test(b_wins, a_wins):.2g}")
+    for s in ranked:
         outcome = {e["env_id"]: e for e in found[s.name]}
-        broken = Counter(outcome[e["env_id"]].get("stage") for e in control
-                         if e["success"] and e["env_id"] in outcome and not outcome[e["env_id"]]["success"])
-        lines.append(f"{s.label} breaks {sum(broken.values())} of the control's successes: "
-                     + (", ".join(f"{stage} {n}" for stage, n in broken.most_common()) or "none"))
+        broken = [outcome[e["env_id"]].get("stage") for e in control
+                  if e["success"] and e["env_id"] in outcome and not outcome[e["env_id"]]["success"]]
+        stages = Counter(stage for stage in broken if stage)  # an evaluation without attribution has none
+        lines.append(f"{s.label} breaks {len(broken)} of the control's successes: "
+                     + (", ".join(f"{stage} {n}" for stage, n in stages.most_common()) or "no stage attributed"))
     return "\n".join(lines)
 
 
