@@ -855,8 +855,8 @@ def table_markdown(ship: Path) -> str:
 
 def orderings_markdown(ship: Path) -> str:
     """The paper's orderings tested on the kept evaluations: the measured ablations in the order of their drop, each
-    pair of them compared over the same environments (sign test), and the environments each ablation breaks (the
-    control succeeds, it fails) by its attributed stage."""
+    pair of them compared over the same environments (sign test), and the environments each ablation (then pose
+    noise) breaks (the control succeeds, it fails) by its attributed stage."""
     found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())["episodes"]
              for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
     control = found.get(SYSTEMS[0].name)
@@ -874,7 +874,7 @@ def orderings_markdown(ship: Path) -> str:
             b_wins, a_wins = paired(found[a.name], found[b.name])
             lines.append(f"{b.label} succeeds where {a.label} fails in {b_wins}, the reverse in {a_wins}: sign test "
                          f"p {sign_test(b_wins, a_wins):.2g}")
-    for s in ranked:
+    for s in ranked + [s for s in SYSTEMS[1:] if s.name in found and s not in ablations]:  # pose noise too
         outcome = {e["env_id"]: e for e in found[s.name]}
         broken = [outcome[e["env_id"]].get("stage") for e in control
                   if e["success"] and e["env_id"] in outcome and not outcome[e["env_id"]]["success"]]
