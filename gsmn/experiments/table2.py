@@ -821,13 +821,18 @@ def pending(ship: Path, split: str = "dev") -> str:
     return "not yet (trained, not evaluated)" if trained(stage) else f"not yet ({training_stage(stage)})"
 
 
+def kept_evaluations(ship: Path) -> dict[str, dict]:
+    """Each system's kept dev evaluation (`<ship>/<name>/evaluation.json`), by name, in SYSTEMS order."""
+    return {s.name: json.loads((ship / s.name / "evaluation.json").read_text())
+            for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+
+
 def table_markdown(ship: Path) -> str:
     """Table 2 from the kept evaluations: ours beside the paper's, each ablation's drop from the control with a
     paired sign test over the same environments, and the failures' attribution counts."""
     from gsmn.attribution import reported_stages
 
-    found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())
-             for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+    found = kept_evaluations(ship)
     counts = {name: Counter(e["stage"] for e in result["episodes"] if e.get("stage")) for name, result in found.items()}
     stages = reported_stages(*counts.values())  # the merged stages of untrained heads only where some row has one
     lines = ["| system | success % (95 % interval) | landmark % | mean dist (m) | median dist (m) | paper: success, "
@@ -857,8 +862,7 @@ def orderings_markdown(ship: Path) -> str:
     """The paper's orderings tested on the kept evaluations: the measured ablations in the order of their drop, each
     pair of them compared over the same environments (sign test), and the environments each ablation (then pose
     noise) breaks (the control succeeds, it fails) by its attributed stage."""
-    found = {s.name: json.loads((ship / s.name / "evaluation.json").read_text())["episodes"]
-             for s in SYSTEMS if (ship / s.name / "evaluation.json").is_file()}
+    found = {name: result["episodes"] for name, result in kept_evaluations(ship).items()}
     control = found.get(SYSTEMS[0].name)
     ablations = [s for s in SYSTEMS[1:] if s.name in found and any(k.startswith("loss.") for k in s.switch)]
     if control is None or not ablations:
