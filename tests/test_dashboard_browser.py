@@ -48,7 +48,9 @@ def test_type_run_watch_finish_and_ask_what_if(dashboard, page):
     run = page.get_by_role("button", name="Run", exact=True)
     run.wait_for()
     instruction = field(page, "Instruction")
-    assert "pumpkin" in instruction.input_value()  # opens on environment 70 with its own instruction
+    # opens on environment 70 with its own instruction, filled in once the world is built and its first frame
+    # rendered, which may come after the Run button shows
+    browser_support.poll(instruction.input_value, lambda text: "pumpkin" in text, "environment 70's instruction")
 
     # an instruction naming no landmark of this world is refused, with the reason shown
     instruction.fill("go to the left side of the anvil")
