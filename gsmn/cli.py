@@ -264,8 +264,9 @@ def cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
-INIT_OPTIMIZER_HELP = ("also start Adam from the optimizer state saved in the --init checkpoint (its optimizer.pt), "
-                       "to go on training as if the earlier run had not stopped; with this run's learning rate")
+INIT_OPTIMIZER_HELP = ("also start Adam from the optimizer state saved in the --init checkpoint (its "
+                       "optimizer.safetensors), to go on training as if the earlier run had not stopped; with this "
+                       "run's learning rate")
 
 
 # -- gsmn train -------------------------------------------------------------------------------------

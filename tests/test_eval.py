@@ -126,7 +126,7 @@ def test_an_evaluation_run_in_pieces_merges_into_the_whole(tmp_path):
         (folder / "weights.safetensors").write_bytes(weights)
         (folder / "meta.json").write_text(json.dumps({"saved": str(folder)}))
     assert merge_results([{**first, "checkpoint": str(a)}, {**rest, "checkpoint": str(b)}])["checkpoint"] == str(a)
-    (a / "optimizer.pt").write_bytes(b"adam state")  # training state beside the weights: the same system
+    (a / "optimizer.safetensors").write_bytes(b"adam state")  # training state beside the weights: the same system
     assert merge_results([{**first, "checkpoint": str(a)}, {**rest, "checkpoint": str(b)}])["checkpoint"] == str(a)
     with pytest.raises(ValueError, match="different checkpoints"):
         merge_results([{**first, "checkpoint": str(a)}, {**rest, "checkpoint": str(c)}])

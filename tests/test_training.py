@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load_file
 
 from gsmn.config import preset, with_overrides
-from gsmn.model.checkpoint import CheckpointError, load_checkpoint
+from gsmn.model.checkpoint import CheckpointError, load_checkpoint, read_optimizer_state
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunError, RunFolder, TrainState, read_progress
 from gsmn.training.store import EpisodeStore, StoreError
@@ -89,8 +89,9 @@ def test_a_run_from_a_checkpoint_can_go_on_with_its_optimizer_state(stores, tmp_
     train, _ = stores
     one = with_overrides(CONFIG, {"train.epochs": "1"})
     start = train_supervised(tmp_path / "first", "gsmn", one, train, log=lambda s: None)
-    saved = torch.load(start / "optimizer.pt", weights_only=True)
-    in_run = torch.load(tmp_path / "first" / "state" / "optimizer.pt", weights_only=True)
+    assert not list(start.glob("*.pt")) and not list((tmp_path / "first" / "state").glob("*.pt"))  # no pickle
+    saved = read_optimizer_state(start / "optimizer.safetensors")
+    in_run = read_optimizer_state(tmp_path / "first" / "state" / "optimizer.safetensors")
     assert saved["state"] and saved["state"].keys() == in_run["state"].keys()
     slower = with_overrides(one, {"train.learning_rate": "0.0001"})
     _, _, optimizer = make_model_and_optimizer("gsmn", slower, start, init_optimizer=True)
@@ -102,16 +103,16 @@ def test_a_run_from_a_checkpoint_can_go_on_with_its_optimizer_state(stores, tmp_
     assert not make_model_and_optimizer("gsmn", slower, start)[2].state_dict()["state"]
     end = train_supervised(tmp_path / "continued", "gsmn", slower, train, init=start, init_optimizer=True,
                            log=lambda s: None)
-    after = torch.load(end / "optimizer.pt", weights_only=True)
+    after = read_optimizer_state(end / "optimizer.safetensors")
     assert {float(v["step"]) for v in after["state"].values()} == {4.0}  # it went on counting
-    (start / "optimizer.pt").unlink()
+    (start / "optimizer.safetensors").unlink()
     with pytest.raises(CheckpointError, match="holds no optimizer state"):
         train_supervised(tmp_path / "refused", "gsmn", slower, train, init=start, init_optimizer=True)
     # A run that already started resumes from its own state, Adam included, whatever became of `init` since.
     longer = with_overrides(slower, {"train.epochs": "2"})
     end = train_supervised(tmp_path / "continued", "gsmn", longer, train, init=start, init_optimizer=True,
                            log=lambda s: None)
-    after = torch.load(end / "optimizer.pt", weights_only=True)
+    after = read_optimizer_state(end / "optimizer.safetensors")
     assert {float(v["step"]) for v in after["state"].values()} == {6.0}
 
 

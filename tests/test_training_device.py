@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from gsmn.config import ConfigError, preset, with_overrides
-from gsmn.model.checkpoint import load_checkpoint
+from gsmn.model.checkpoint import load_checkpoint, read_optimizer_state
 from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunFolder
 from gsmn.training.supervised import train_supervised, validate
@@ -55,8 +55,8 @@ def test_a_run_trained_on_the_gpu_is_read_on_the_cpu_and_computes_the_same(store
     log = RunFolder(tmp_path / "gpu").read_log()
     assert [r["epoch"] for r in log] == [1, 2] and log[-1]["train"]["loss"] < log[0]["train"]["loss"]
     # Every saved tensor is on the CPU: a machine without CUDA loads them without a map_location.
-    for path in (checkpoint / "optimizer.pt", tmp_path / "gpu" / "state" / "optimizer.pt"):
-        state = torch.load(path, weights_only=True)["state"]
+    for path in (checkpoint / "optimizer.safetensors", tmp_path / "gpu" / "state" / "optimizer.safetensors"):
+        state = read_optimizer_state(path)["state"]
         assert state and all(t.device.type == "cpu" for s in state.values() for t in s.values()), path
     cpu_model, config, vocabulary, _ = load_checkpoint(checkpoint)
     gpu_model, _, _, _ = load_checkpoint(checkpoint, device="cuda")

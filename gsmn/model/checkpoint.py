@@ -4,9 +4,10 @@
     config.json           the resolved RunConfig (RunConfig.to_dict)
     vocabulary.json       the word list the token ids refer to
     meta.json             {"format", "kind", "created", "code_version", "metrics", ...free-form}
-    optimizer.pt          optional: the training run's optimizer state (torch.save of tensors and plain
-                          containers, read with weights_only=True), so that training can go on from the
-                          checkpoint as if it had not stopped (`gsmn train ... --init C --init-optimizer`)
+    optimizer.safetensors optional: the training run's optimizer state (its tensors as safetensors, its
+                          hyper-parameters as JSON in the file's metadata: never unpickled), so that training can
+                          go on from the checkpoint as if it had not stopped (`gsmn train ... --init C
+                          --init-optimizer`); a legacy optimizer.pt is still read, with weights_only=True
 
 `save_checkpoint` writes into a temporary sibling folder and renames it into place, so a reader never sees a
 half-written checkpoint. `load_checkpoint` raises `CheckpointError` naming the folder and what is wrong for a
@@ -36,7 +37,8 @@ from gsmn.model.vocabulary import Vocabulary
 
 FORMAT = 1
 FILES = ("weights.safetensors", "config.json", "vocabulary.json", "meta.json")
-OPTIMIZER_FILE = "optimizer.pt"
+OPTIMIZER_FILE = "optimizer.safetensors"
+LEGACY_OPTIMIZER_FILE = "optimizer.pt"  # written by older code: torch.save, read with weights_only=True
 
 
 class CheckpointError(ValueError):
@@ -63,6 +65,49 @@ def on_cpu(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return type(value)(on_cpu(v) for v in value)
     return value
+
+
+def save_optimizer_state(path: str | Path, state_dict: dict[str, Any]) -> None:
+    """An optimizer's state_dict as a safetensors file: every tensor of `state` under "state/<param>/<name>", the
+    non-tensor entries and `param_groups` as JSON in the metadata. Nothing in it is ever unpickled."""
+    tensors, scalars = {}, {}
+    for param, entries in state_dict["state"].items():
+        for name, value in entries.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"state/{param}/{name}"] = value.detach().cpu().contiguous()
+            else:
+                scalars[f"{param}/{name}"] = value
+    save_file(tensors, str(path), metadata={"param_groups": json.dumps(state_dict["param_groups"]),
+                                            "scalars": json.dumps(scalars), "format": "optimizer-1"})
+
+
+def read_optimizer_state(path: str | Path) -> dict[str, Any]:
+    """The state_dict `save_optimizer_state` wrote (a legacy .pt file: torch.load with weights_only=True)."""
+    path = Path(path)
+    if path.suffix == ".pt":
+        return torch.load(path, weights_only=True, map_location="cpu")
+    from safetensors import safe_open
+
+    state: dict[int, dict[str, Any]] = {}
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+        if meta.get("format") != "optimizer-1":
+            raise ValueError(f"{path.name} is not an optimizer state file (format {meta.get('format')!r})")
+        for key in f.keys():
+            _, param, name = key.split("/", 2)
+            state.setdefault(int(param), {})[name] = f.get_tensor(key)
+    for key, value in json.loads(meta["scalars"]).items():
+        param, name = key.split("/", 1)
+        state.setdefault(int(param), {})[name] = value
+    return {"state": state, "param_groups": json.loads(meta["param_groups"])}
+
+
+def optimizer_file(folder: str | Path) -> Path | None:
+    """The optimizer state file in a checkpoint or run-state folder (safetensors, else a legacy .pt), or None."""
+    for name in (OPTIMIZER_FILE, LEGACY_OPTIMIZER_FILE):
+        if (Path(folder) / name).is_file():
+            return Path(folder) / name
+    return None
 
 
 def cpu_weights(model: torch.nn.Module) -> dict[str, torch.Tensor]:
@@ -94,7 +139,7 @@ def save_checkpoint(folder: str | Path, model: Model, config: RunConfig, vocabul
         (tmp / "vocabulary.json").write_text(vocabulary.to_json() + "\n")
         (tmp / "meta.json").write_text(json.dumps(full_meta, indent=1, sort_keys=True) + "\n")
         if optimizer_state is not None:
-            torch.save(on_cpu(optimizer_state), tmp / OPTIMIZER_FILE)
+            save_optimizer_state(tmp / OPTIMIZER_FILE, optimizer_state)
         if folder.exists():
             old = folder.parent / f".{folder.name}.old-{uuid.uuid4().hex[:8]}"
             os.rename(folder, old)
@@ -157,7 +202,7 @@ def keep_iteration(run: str | Path) -> Path | None:
     tmp = run.parent / f".{dst.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        shutil.copytree(run / "checkpoint", tmp, ignore=shutil.ignore_patterns(OPTIMIZER_FILE))
+        shutil.copytree(run / "checkpoint", tmp, ignore=shutil.ignore_patterns(OPTIMIZER_FILE, LEGACY_OPTIMIZER_FILE))
         unchanged = meta.read_text() == before == (tmp / "meta.json").read_text()
     except OSError:
         unchanged = False
@@ -219,15 +264,15 @@ def with_model_of(config: RunConfig, init: str | Path) -> RunConfig:
 
 def load_optimizer_state(folder: str | Path) -> dict[str, Any]:
     """The optimizer state saved in a checkpoint folder (tensors and plain containers only: never code)."""
-    path = Path(folder) / OPTIMIZER_FILE
-    if not path.is_file():
+    path = optimizer_file(folder)
+    if path is None:
         raise CheckpointError(f"checkpoint {folder}: holds no optimizer state ({OPTIMIZER_FILE}); it was saved "
                               "without one, so training from it must start a fresh optimizer (leave out "
                               "--init-optimizer)")
     try:
-        return torch.load(path, weights_only=True, map_location="cpu")  # Adam moves it onto its parameters' device
-    except Exception as e:  # unpickling errors come in many types
-        raise CheckpointError(f"checkpoint {folder}: {OPTIMIZER_FILE} is unreadable ({e})") from e
+        return read_optimizer_state(path)  # on the CPU: Adam moves it onto its parameters' device
+    except Exception as e:  # damaged files fail in many types
+        raise CheckpointError(f"checkpoint {folder}: {path.name} is unreadable ({e})") from e
 
 
 def load_checkpoint(folder: str | Path, device: str | torch.device = "cpu"

@@ -12,8 +12,7 @@
                           atomically at most once a second; monitors such as the dashboard read it, with the log
                           and the state, through `read_progress`
 
-Optimizer state is saved with torch.save and read back with weights_only=True: tensors and plain
-containers only, never code.
+Optimizer state is saved as safetensors (`gsmn.model.checkpoint.save_optimizer_state`): never unpickled.
 """
 
 from __future__ import annotations
@@ -30,7 +29,13 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from gsmn.config import RunConfig
-from gsmn.model.checkpoint import cpu_weights, on_cpu
+from gsmn.model.checkpoint import (
+    OPTIMIZER_FILE,
+    cpu_weights,
+    optimizer_file,
+    read_optimizer_state,
+    save_optimizer_state,
+)
 
 
 class RunError(ValueError):
@@ -128,7 +133,7 @@ class RunFolder:
             shutil.rmtree(tmp)
         tmp.mkdir()
         save_file(cpu_weights(model), tmp / "weights.safetensors")
-        torch.save(on_cpu(optimizer.state_dict()), tmp / "optimizer.pt")
+        save_optimizer_state(tmp / OPTIMIZER_FILE, optimizer.state_dict())
         (tmp / "state.json").write_text(json.dumps(asdict(state)))
         old = self.root / "state.old"
         if old.exists():
@@ -142,7 +147,7 @@ class RunFolder:
         if not (self.state_dir / "state.json").is_file() and (self.root / "state.old" / "state.json").is_file():
             (self.root / "state.old").rename(self.state_dir)  # killed between the two renames
         model.load_state_dict(load_file(self.state_dir / "weights.safetensors"))  # copied onto the model's device
-        optimizer.load_state_dict(torch.load(self.state_dir / "optimizer.pt", weights_only=True, map_location="cpu"))
+        optimizer.load_state_dict(read_optimizer_state(optimizer_file(self.state_dir)))
         return TrainState(**json.loads((self.state_dir / "state.json").read_text()))
 
     @property
