@@ -225,6 +225,14 @@ class ModelConfig:
                                                   "(paper: yes; original code: no)")
     fpv_hidden: int = _f(32, "GS-FPV(-MEM) controller hidden units")
     fpv_memory: int = _f(32, "GS-FPV-MEM LSTM size")
+    # The original code's -J_ground and -J_goal remove a module, not only its loss (docs/model.md, "Removing a
+    # module"): an identity takes the filter's place, and what it passes on is sliced as the original slices it.
+    grounding_filter: bool = _f(True, "GSMN's language-conditioned grounding filter (false: the original code's "
+                                      "identity in its place; the goal filter and the controller read the semantic "
+                                      "map's first relevance_channels channels as the relevance map)")
+    goal_filter: bool = _f(True, "GSMN's language-conditioned goal filter (false: the original code's identity in its "
+                                 "place; the controller reads the semantic map's first goal_channels channels, in "
+                                 "the drone's frame, where the goal map was)")
     pose_noise_std: float = _f(0.0, "std of Gaussian noise on the position (x, y, z) the model sees, fresh every "
                                     "forward (m); the paper's noise experiment uses 0.5")
     pose_noise_yaw_deg: float = _f(0.0, "std of Gaussian noise on the yaw the model sees (deg)")
@@ -244,6 +252,10 @@ class ModelConfig:
         _check(self.filter_activation in ("sigmoid", "none"),
                f"model.filter_activation must be sigmoid or none, got {self.filter_activation!r}")
         _check(self.pose_noise_std >= 0 and self.pose_noise_yaw_deg >= 0, "model pose noise stds must be >= 0")
+        _check(self.feature_channels >= max(self.relevance_channels, self.goal_channels) or
+               (self.grounding_filter and self.goal_filter),
+               "model.feature_channels must be >= relevance_channels and goal_channels when a filter is removed "
+               "(its identity passes on the semantic map's first channels)")
 
 
 @dataclass(frozen=True)

@@ -425,6 +425,39 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path, batch, kind):
     assert isinstance(load_policy(folder), ModelPolicy)
 
 
+@pytest.mark.parametrize("removed", [("grounding_filter",), ("goal_filter",), ("grounding_filter", "goal_filter")])
+def test_a_removed_filter_is_the_original_codes_identity(tmp_path, batch, removed):
+    """The original code's module ablations (docs/model.md, "Removing a module"): the maps form a stack, a removed
+    filter passes it on, each reader takes its first channels; the removed filter has no weights, trains nothing,
+    and the step-by-step policy and a checkpoint round trip compute what the sequence forward does."""
+    config = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, **{name: False for name in removed}))
+    model = seeded_model("gsmn", config).eval()
+    with torch.inference_mode():
+        out = forward_batch(model, batch)
+    stack = out.semantic_map_w if "grounding_filter" in removed else torch.cat([out.relevance_map_w,
+                                                                                 out.semantic_map_w], dim=2)
+    torch.testing.assert_close(out.relevance_map_w, stack[:, :, :3])
+    if "goal_filter" in removed:  # the controller reads [R, next 2 channels], and the record's goal maps are those
+        torch.testing.assert_close(out.goal_map_w, stack[:, :, 3:5])
+        assert model.goal_filter is None
+    if "grounding_filter" in removed:
+        assert model.relevance_filter is None
+    names = {k.split(".")[0] for k in model.state_dict()}
+    assert names.isdisjoint({"relevance_filter" if "grounding_filter" in removed else "", "goal_filter"
+                             if "goal_filter" in removed else ""})
+    folder = save_checkpoint(tmp_path / "ckpt", model, config, VOCABULARY)
+    loaded, loaded_config, _, _ = load_checkpoint(folder)
+    assert loaded_config.model == config.model
+    with torch.inference_mode():
+        again = forward_batch(loaded, batch)
+    torch.testing.assert_close(again.v, out.v)
+    torch.testing.assert_close(again.goal_map_r, out.goal_map_r)
+    model.train()
+    losses = compute_losses(model, batch, forward_batch(model, batch), config.loss)
+    losses.total.backward()
+    assert all(p.grad is not None for p in model.controller.parameters())
+
+
 def test_a_checkpoint_from_before_filter_activation_loads_with_the_sigmoid(tmp_path, batch):
     """config.json files written before model.filter_activation existed used the sigmoid: they load as such and fly
     as they did."""

@@ -99,10 +99,12 @@ class GoalFilter(nn.Module):
 class InstructionKernels:
     """The language-conditioned kernels of B instructions: what the filters make of the sentence embeddings."""
 
-    relevance: torch.Tensor  # (B, C_r, C_f) 1x1 kernels
-    goal: tuple[torch.Tensor, torch.Tensor]  # K1 (B, C_r, C_r, 3, 3), K2 (B, C_g, C_r, 3, 3)
+    relevance: torch.Tensor | None  # (B, C_r, C_f) 1x1 kernels; None: no grounding filter (an identity)
+    goal: tuple[torch.Tensor, torch.Tensor] | None  # K1 (B, C_r, C_r, 3, 3), K2 (B, C_g, C_r, 3, 3); None: no filter
 
     @staticmethod
-    def of(relevance_filter: RelevanceFilter, goal_filter: GoalFilter, sentence_embedding: torch.Tensor
+    def of(relevance_filter: RelevanceFilter | None, goal_filter: GoalFilter | None, sentence_embedding: torch.Tensor
            ) -> InstructionKernels:
-        return InstructionKernels(relevance_filter.kernels(sentence_embedding), goal_filter.kernels(sentence_embedding))
+        """The kernels of both filters; a filter that is None (removed, as the original code's ablations) has none."""
+        return InstructionKernels(relevance_filter.kernels(sentence_embedding) if relevance_filter else None,
+                                  goal_filter.kernels(sentence_embedding) if goal_filter else None)

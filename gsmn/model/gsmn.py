@@ -10,6 +10,13 @@
     goal_map_w            = goal_map_r back in the world frame (for J_plan and the dashboard)
     v, omega, stop_logit  = controller([goal_map_r, relevance_map_r])         Control
 
+The original code's -J_ground and -J_goal ablations remove a filter, not only its loss (`model.grounding_filter`,
+`model.goal_filter`; docs/model.md, "Removing a module"). As there, the maps form a stack: each filter puts its
+output before the channels it read, an identity passes the stack on, and each reader takes the stack's first
+channels. Without the grounding filter the "relevance map" is the semantic map's first 3 channels; without the goal
+filter the controller reads the stack's first 5 channels in the drone's frame, [R, S_0, S_1] (or S_0..S_4 with
+neither filter), and the record's goal maps are the 2 channels it reads after R, where the goal map was.
+
 `forward` takes whole sequences (B, T, ...) and returns a `GSMNOutputs` record of every intermediate map. It is
 pure: perception and projection run batched over all B*T steps, only the leaky integrator is sequential. The
 step-level pieces serve the policy and the dashboard: `perceive` (image -> updated semantic map, independent of
@@ -113,6 +120,10 @@ class GSMN(nn.Module):
         self.frames = FrameTransform(self.geometry)
         slope = m.leaky_relu_slope
         add_shared_modules(self, m, vocabulary_size)
+        if not m.grounding_filter:
+            self.relevance_filter = None  # the original's IdentityMapProcessor: no weights, nothing to learn
+        if not m.goal_filter:
+            self.goal_filter = None
         self.controller = MapController(m.relevance_channels + m.goal_channels, m.robot_map_size, m.controller_hidden,
                                         m.controller_dropout, m.instruction_hidden * m.controller_uses_instruction,
                                         slope)
@@ -166,17 +177,30 @@ class GSMN(nn.Module):
             kernels = self.instruction_kernels(sentence_embedding)
         B, lead = semantic_map_w.shape[0], semantic_map_w.shape[1:-3]
         n_per = int(torch.Size(lead).numel())  # steps per sample (1 without a T dimension)
-        relevance_w = self.relevance_filter(semantic_map_w, kernels.relevance)  # (B, [T,] 3, n, n)
+        m = self.config.model
+        if self.relevance_filter is not None:
+            relevance_w = self.relevance_filter(semantic_map_w, kernels.relevance)  # (B, [T,] 3, n, n)
+            rest_w = semantic_map_w  # the stack after R: the semantic map (the original's cat_out)
+        else:  # identity: the stack is the semantic map, and its readers take its first channels
+            relevance_w = semantic_map_w[..., :m.relevance_channels, :, :]
+            rest_w = semantic_map_w[..., m.relevance_channels:, :, :]
         theta_world_robot, theta_robot_world = self.frames.thetas(poses.reshape(B * n_per, 3))  # both ways at once
-        relevance_r = self.frames.to_robot(relevance_w.reshape(B * n_per, *relevance_w.shape[-3:]),
-                                           theta_world_robot)  # (B*T, 3, 2n, 2n)
-        goal_r = self.goal_filter(relevance_r.reshape(B, n_per, *relevance_r.shape[1:]), kernels.goal)
-        goal_r = goal_r.reshape(B * n_per, *goal_r.shape[2:])  # (B*T, 2, 2n, 2n)
-        goal_w = self.frames.to_world(goal_r, theta_robot_world)  # (B*T, 2, n, n)
+        if self.goal_filter is not None:
+            relevance_r = self.frames.to_robot(relevance_w.reshape(B * n_per, *relevance_w.shape[-3:]),
+                                               theta_world_robot)  # (B*T, 3, 2n, 2n)
+            goal_r = self.goal_filter(relevance_r.reshape(B, n_per, *relevance_r.shape[1:]), kernels.goal)
+            goal_r = goal_r.reshape(B * n_per, *goal_r.shape[2:])  # (B*T, 2, 2n, 2n)
+            goal_w = self.frames.to_world(goal_r, theta_robot_world)  # (B*T, 2, n, n)
+            controller_in = torch.cat([goal_r, relevance_r], dim=1)
+        else:  # identity: the controller reads the stack's first channels, R then the next goal_channels
+            goal_w = rest_w[..., :m.goal_channels, :, :].reshape(B * n_per, m.goal_channels, *rest_w.shape[-2:])
+            read_w = torch.cat([relevance_w.reshape(B * n_per, *relevance_w.shape[-3:]), goal_w], dim=1)
+            controller_in = self.frames.to_robot(read_w, theta_world_robot)  # (B*T, 5, 2n, 2n)
+            relevance_r, goal_r = controller_in.split([m.relevance_channels, m.goal_channels], dim=1)
         extra = None
-        if self.config.model.controller_uses_instruction:
+        if m.controller_uses_instruction:
             extra = sentence_embedding.repeat_interleave(n_per, dim=0)
-        raw = self.controller(torch.cat([goal_r, relevance_r], dim=1), extra)  # (B*T, 3)
+        raw = self.controller(controller_in, extra)  # (B*T, 3)
         v, omega, stop_logit = split_actions(raw.reshape(B, *lead, 3))
 
         def unflat(x: torch.Tensor) -> torch.Tensor:
