@@ -33,7 +33,8 @@ def test_the_six_systems_differ_from_the_control_only_in_their_switch():
     recipe = RECIPES["paper"]
     control = [_leaves(c.to_dict()) for c in table2.system_configs(SYSTEMS[0], recipe)]
     assert SYSTEMS[0].switch == {} and SYSTEMS[0].kind == "gsmn"
-    assert [s.name for s in SYSTEMS] == ["gsmn", "no-plan", "no-ground", "no-lang", "no-percept", "pose-noise"]
+    assert [s.name for s in SYSTEMS] == ["gsmn", "no-plan", "no-ground", "no-lang", "no-percept", "pose-noise",
+                                         "no-ground-module", "no-plan-module", "gs-fpv", "gs-fpv-mem"]
     for system in SYSTEMS[1:]:
         for stage, (ours, theirs) in enumerate(zip(control, table2.system_configs(system, recipe), strict=True)):
             theirs = _leaves(theirs.to_dict())
@@ -43,12 +44,17 @@ def test_the_six_systems_differ_from_the_control_only_in_their_switch():
     # the one switch each: off for an objective, the original code's 0.5 m for the pose noise
     assert {s.name: s.switch for s in SYSTEMS[1:]} == {
         "no-plan": {"loss.goal": False}, "no-ground": {"loss.grounding": False}, "no-lang": {"loss.language": False},
-        "no-percept": {"loss.perception": False}, "pose-noise": {"model.pose_noise_std": 0.5}}
+        "no-percept": {"loss.perception": False}, "pose-noise": {"model.pose_noise_std": 0.5},
+        # the original code's ablations: the filter replaced by an identity, and its loss gone with it
+        "no-ground-module": {"model.grounding_filter": False, "loss.grounding": False},
+        "no-plan-module": {"model.goal_filter": False, "loss.goal": False},
+        "gs-fpv": {}, "gs-fpv-mem": {}}  # the baselines differ in their kind alone
     # the -J_plan system's kind trains exactly the loss its config says: the kind adds nothing of its own
     no_plan = table2.BY_NAME["no-plan"]
     loss = table2.system_configs(no_plan, recipe)[0].loss
     assert objectives_for(no_plan.kind, loss) == loss == dataclasses.replace(LossConfig(), goal=False)
-    assert [s.kind for s in SYSTEMS if s.name != "no-plan"] == ["gsmn"] * 5
+    assert [s.kind for s in SYSTEMS if s.name not in ("no-plan", "gs-fpv", "gs-fpv-mem")] == ["gsmn"] * 7
+    assert [table2.BY_NAME[n].kind for n in ("gs-fpv", "gs-fpv-mem")] == ["gs-fpv", "gs-fpv-mem"]
     # the recipe, shared by all: supervised at the paper's learning rate, DAggerFM at a lower one
     sup, dagger = control
     assert sup["train.epochs"] == recipe.epochs and sup["train.learning_rate"] == 1e-3
@@ -153,14 +159,19 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # let go: this raises while it is held
     stage = json.loads((ship / "stage.json").read_text())
     assert (stage["stage"], stage["epoch"], stage["epochs"], stage["evaluated"]) == ("dagger", 1, 2, False)
+    # committed only when a stage ends: the supervised stage's last epoch; a copy between two stage ends waits
     history = _git(repo, "log", "--format=%s").splitlines()
-    assert history[:3] == ["table2: GSMN, dagger iteration 1 of 2 (stage copy for resuming)",
-                           "table2: GSMN, supervised epoch 2 of 2 (stage copy for resuming)",
-                           "table2: GSMN, supervised epoch 1 of 2 (stage copy for resuming)"]
-    # one copy in the tree, replaced at each stage: a checkpoint with its Adam state and the run's small files
+    assert history[0] == "table2: GSMN, supervised epoch 2 of 2 (stage copy for resuming)"
+    assert "supervised epoch 1 of 2" not in "".join(history)
+    assert _git(repo, "status", "--porcelain") != ""
+    # ... until the work pauses: --keep-latest commits the copy there is (the one resume copy, replaced)
+    table2.keep_latest(layout, [control], commit=True, log=lines.append)
+    assert _git(repo, "log", "-1", "--format=%s").strip() == \
+        "table2: GSMN, dagger iteration 1 of 2 (stage copy for resuming)"
+    # one copy in the tree: a checkpoint with its Adam state (safetensors: no pickle) and the run's small files
     tracked = sorted(_git(repo, "ls-files", "checkpoints").split())
     assert tracked == sorted(f"checkpoints/table2/gsmn/{name}" for name in (
-        "config.json", "meta.json", "optimizer.pt", "vocabulary.json", "weights.safetensors", "stage.json",
+        "config.json", "meta.json", "optimizer.safetensors", "vocabulary.json", "weights.safetensors", "stage.json",
         "run/config.json", "run/log.jsonl", "run/state.json", "run/supervised_log.jsonl"))
     assert _git(repo, "status", "--porcelain") == ""
     # a DAggerFM copy keeps the supervised epochs' log (Figure 4's figures) beside its own
@@ -190,8 +201,13 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert {"env_id", "success", "goal_distance", "stage", "final_x"} <= set(episode) and "trajectory" not in episode
     assert (episode["stage"] is None) == episode["success"]
     assert json.loads((ship / "stage.json").read_text())["evaluated"] is True
-    assert _git(repo, "log", "-2", "--format=%s").splitlines() == [
-        "table2: GSMN, evaluated on 1 test environments (Table 1)", "table2: GSMN, evaluated on 1 dev environments"]
+    assert _git(repo, "log", "-3", "--format=%s").splitlines() == [
+        "table2: GSMN, evaluated on 1 test environments (Table 1)", "table2: GSMN, evaluated on 1 dev environments",
+        "table2: GSMN, dagger iteration 2 of 2 (stage copy for resuming)"]
+    # finished: weights, config, vocabulary and meta, no optimizer state; a further start has nothing to do
+    assert not list(ship.glob("optimizer.*"))
+    assert table2.done(layout, control, recipe)
+    assert run_system(control, layout, recipe, threads=1, commit=True, log=lines.append) == result
     # the control is also flown on Table 1's test environments, kept the same way
     test = json.loads((ship / "table1.json").read_text())
     assert test["split"] == "test" and test["env_ids"] == table2.environments(recipe)["table1"] == [70]
@@ -520,22 +536,26 @@ def test_the_programme_ends_when_the_control_is_below_the_gate(tmp_path, monkeyp
     layout = Layout(tmp_path / "runs", tmp_path / "ship")
     recipe = dataclasses.replace(RECIPES["tiny"], control_gate=60.0)
     ship = layout.shipped(SYSTEMS[0])
-    ship.mkdir(parents=True)
-    (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": recipe.iterations,
-                                                 "epochs": recipe.iterations, "evaluated": True}))
-    (ship / "evaluation.json").write_text(json.dumps({"summary": {"success": 50.0}}))
     started: list[str] = []
 
-    class Finished:  # a system's process, done at once (its pipeline is tested above)
+    class Finished:  # a system's process, done at once (its pipeline is tested above): the control below the gate
         returncode = 0
 
         def __init__(self, command, **kwargs):
             started.append(command[command.index("--system") + 1])
+            if started[-1] == "gsmn":
+                ship.mkdir(parents=True)
+                (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "evaluated": True,
+                                                             "epoch": recipe.iterations, "epochs": recipe.iterations}))
+                (ship / "evaluation.json").write_text(json.dumps({"summary": {"success": 50.0}}))
 
         def poll(self):
             return 0
 
     monkeypatch.setattr(table2.subprocess, "Popen", Finished)
+    assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
+    assert started == ["gsmn", "no-plan"]
+    # started again: the control is done (not restarted) and its gate holds at once
     assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
     assert started == ["gsmn", "no-plan"]
 

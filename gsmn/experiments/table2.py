@@ -1,24 +1,29 @@
-"""The paper's Table 2 (development results): GSMN, its four ablations and GSMN observing noisy poses, trained with
-one recipe and flown on the same dev environments; `gsmn experiment table2 --out DIR` runs it all and resumes it
-wherever it stopped.
+"""The paper's Table 2 (development results): GSMN, its four objective ablations and GSMN observing noisy poses, the
+original code's two module ablations, and Table 1's first-person baselines, trained with one recipe and flown on the
+same dev environments; `gsmn experiment table2 --out DIR` runs it all and resumes it wherever it stopped.
 
-Each system is the control's configuration with one switch changed (`SYSTEMS`); everything else (the expert data,
-epochs, DAggerFM schedule, seeds, evaluation) is the `Recipe`'s, the same for all. Per system, in order:
+Each system is the control's configuration with one switch changed, or a baseline's kind (`SYSTEMS`); everything
+else (the expert data, epochs, DAggerFM schedule, seeds, evaluation) is the `Recipe`'s, the same for all. Per
+system, in order:
 
     supervised   `recipe.epochs` epochs on the expert data of `recipe.train_envs` train environments
     dagger       `recipe.iterations` DAggerFM iterations in fresh train environments (the ones after the first
                  `recipe.train_envs`), from the supervised checkpoint, with Adam started afresh
     evaluate     flown plainly on the first `recipe.eval_envs` dev environments with the maps recorded, each failure
                  attributed to a stage (gsmn.attribution)
-    table 1      the control and -J_plan (`TABLE1`) also on Table 1's first `recipe.table1_envs` test environments,
-                 once the control's dev success has passed `recipe.control_gate` (below it, no further system starts:
-                 the recipe is extended for all six, and a run goes on from its saved state to the longer end)
+    table 1      the control, -J_plan and the baselines (`TABLE1`) also on Table 1's first `recipe.table1_envs` test
+                 environments, once the control's dev success has passed `recipe.control_gate` (below it, no further
+                 system starts: the recipe is extended for all, and a run goes on from its saved state to the longer
+                 end)
 
 Surviving the loss of the machine. `runs/` and `data/` may be gone at the next start. The expert data is rebuilt by
 collection (deterministic by environment id). Each system's latest finished stage (every `publish_every_epochs`
 supervised epochs, the end of supervised learning, every `publish_every_iterations` DAggerFM iterations, the end)
-is copied to `SHIP/<name>/` (a checkpoint folder: weights, config, vocabulary, meta and Adam state, plus the run's
-small JSON files in `run/`; never images), replacing the previous copy; with `git_commit` it is committed at once.
+is copied to `SHIP/<name>/` (a checkpoint folder: weights, config, vocabulary, meta and Adam state as safetensors,
+plus the run's small JSON files in `run/`; never images, never a pickle), replacing the previous copy; with
+`git_commit` it is committed when a stage ends (the last supervised epoch, the last DAggerFM iteration, an
+evaluation), and `--keep-latest --git-commit` commits it, with any partial evaluation, before the work pauses: one
+committed resume copy per system, replaced. A finished system's copy keeps no Adam state.
 Every finished epoch and iteration is also copied to `OUT/<name>/latest` (not committed):
 `--keep-latest` ships those over the stage copies on demand, before a machine is given up between two of them.
 A start whose run folder is behind that copy restores the run from it and goes on; a DAggerFM run restored this
@@ -45,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from gsmn.config import RunConfig, preset, with_overrides
+from gsmn.model.checkpoint import LEGACY_OPTIMIZER_FILE, OPTIMIZER_FILE, optimizer_file
 from gsmn.task.metrics import sign_test
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -103,10 +109,21 @@ SYSTEMS = (
     # the original code's 0.5 m standard deviation on x, y, z, fresh at every forward pass, in training and flight;
     # no yaw noise, as the paper's eta = [eta_x, eta_y, eta_z, 0, 0, 0] (docs/training.md)
     System("pose-noise", "GSMN + pose noise", "gsmn", {"model.pose_noise_std": 0.5}),
+    # the original code's -J_ground and -J_goal: the filter itself replaced by an identity, its loss gone with it
+    # (docs/model.md, "Removing a module")
+    System("no-ground-module", "GSMN without the grounding filter (as the original code)", "gsmn",
+           {"model.grounding_filter": False, "loss.grounding": False}),
+    System("no-plan-module", "GSMN without the goal filter (as the original code)", "gsmn",
+           {"model.goal_filter": False, "loss.goal": False}),
+    # Table 1's first-person baselines at the control's recipe (their kinds train without J_plan themselves)
+    System("gs-fpv", "GS-FPV", "gs-fpv"),
+    System("gs-fpv-mem", "GS-FPV-MEM", "gs-fpv-mem"),
 )
 BY_NAME = {s.name: s for s in SYSTEMS}
 # flown on Table 1's test environments too: the -J_plan row of Table 1 beside a GSMN of the same recipe
-TABLE1 = ("gsmn", "no-plan")
+TABLE1 = ("gsmn", "no-plan", "gs-fpv", "gs-fpv-mem")
+# the two kinds of ablation side by side (docs/results.md): the objective removed, and the module removed with it
+MODULE_ABLATIONS = {"no-ground": "no-ground-module", "no-plan": "no-plan-module"}
 
 
 def system_configs(system: System, recipe: Recipe, threads: int = 2,
@@ -233,7 +250,9 @@ def publish(run_root: Path, ship: Path, stage: dict, supervised_log: Path | None
     ship.parent.mkdir(parents=True, exist_ok=True)
     tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(run_root / "checkpoint", tmp)
+    # a finished system ships weights, config, vocabulary and meta: no optimizer state (nothing resumes it)
+    shutil.copytree(run_root / "checkpoint", tmp,
+                    ignore=shutil.ignore_patterns(OPTIMIZER_FILE, LEGACY_OPTIMIZER_FILE) if trained(stage) else None)
     (tmp / "run").mkdir()
     for name, source in (("config.json", run_root / "config.json"), ("log.jsonl", run_root / "log.jsonl"),
                          ("state.json", run_root / "state" / "state.json")):
@@ -300,18 +319,28 @@ def keep_latest(layout: Layout, systems: list[System], commit: bool = False, log
             if new is None or _stage_order(new) <= _stage_order(old):
                 log(f"{system.name}: its stage copy is up to date" if new is not None else
                     f"{system.name}: no finished epoch in {latest}")
-                continue
-            tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(latest, tmp)  # further on: not yet evaluated (its stage.json says so)
-            _swap(tmp, ship)
-        what = "epoch" if new.get("stage") == "supervised" else "iteration"
-        where = f"{'supervised' if new.get('stage') == 'supervised' else 'dagger'} {what} {new['epoch']} of " \
-                f"{new['epochs']}"
-        log(f"{system.name}: kept {where} in {ship}")
-        if commit:
-            git_commit([ship], f"table2: {system.label}, {where} (stage copy for resuming)", log)
-        kept.append(system.name)
+                new = None
+            else:
+                tmp = ship.parent / f".{ship.name}.tmp{os.getpid()}"
+                shutil.rmtree(tmp, ignore_errors=True)
+                shutil.copytree(latest, tmp)  # further on: not yet evaluated (its stage.json says so)
+                _swap(tmp, ship)
+        stage = read_stage(ship)
+        if stage is None:
+            continue
+        what = "epoch" if stage.get("stage") == "supervised" else "iteration"
+        where = f"{'supervised' if stage.get('stage') == 'supervised' else 'dagger'} {what} {stage['epoch']} of " \
+                f"{stage['epochs']}"
+        if new is not None:
+            log(f"{system.name}: kept {where} in {ship}")
+            kept.append(system.name)
+        partial = [(split, kept_partial(ship, split)) for split in EVALUATIONS]
+        flown = [f"{len(p['episodes'])} of {len(p['env_ids'])} {split} environments flown" for split, p in partial
+                 if p["episodes"]]  # an evaluation under way: its finished chunks
+        message = f"table2: {system.label}, " + (", ".join(flown) + " (partial evaluation, for resuming)" if flown
+                                                  else f"{where} (stage copy for resuming)")
+        if commit:  # the one committed resume copy, replaced: committed when a stage ends or the work pauses
+            git_commit([ship], message, log)  # nothing to commit where the copy is committed already
     return kept
 
 
@@ -323,7 +352,10 @@ def restore(ship: Path, run_root: Path) -> None:
     shutil.copy2(ship / "run" / "log.jsonl", run_root / "log.jsonl")
     shutil.copy2(ship / "run" / "state.json", run_root / "state" / "state.json")
     shutil.copy2(ship / "weights.safetensors", run_root / "state" / "weights.safetensors")
-    shutil.copy2(ship / "optimizer.pt", run_root / "state" / "optimizer.pt")
+    optimizer = optimizer_file(ship)
+    if optimizer is None:
+        raise ValueError(f"{ship} holds no optimizer state: a finished system's copy cannot be trained further")
+    shutil.copy2(optimizer, run_root / "state" / optimizer.name)
     checkpoint = run_root / "checkpoint"
     shutil.copytree(ship, checkpoint, ignore=shutil.ignore_patterns("run", "stage.json", "evaluation.json"))
 
@@ -463,6 +495,8 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
     from gsmn.training.supervised import train_supervised
 
     ship = layout.shipped(system)
+    if done(layout, system, recipe):
+        return json.loads((ship / "evaluation.json").read_text())
     sup_config, dagger_config = system_configs(system, recipe, threads, device)
     sup_run, dagger_run = layout.run(system, "supervised"), layout.run(system, "dagger")
     stage = read_stage(ship) or {}
@@ -497,7 +531,7 @@ def _run_system_once(system: System, layout: Layout, recipe: Recipe, threads: in
             publish(run_root, ship, stage, supervised_log)
         where = f"{name} {'epoch' if name == 'supervised' else 'iteration'} {epoch} of {total}"
         log(f"{system.name}: kept {where} in {ship}")
-        if commit:
+        if commit and epoch == total:  # a stage's end; between, `keep_latest` commits before the work pauses
             git_commit([ship], f"table2: {system.label}, {where} (stage copy for resuming)", log)
 
     def catch_up(run_root: Path, name: str, total: int) -> bool:
@@ -595,7 +629,7 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
                     split: str = "dev", commit: bool = False, stop: Callable[[], bool] | None = None) -> dict | None:
     """Fly the finished system on the dev (or Table 1's test) environments with `gsmn eval`, record the maps,
     attribute each failure; a compact result. Flown EVAL_CHUNK environments at a time: each finished chunk's compact
-    episodes are kept beside the stage copy (`partial_path`; committed with `commit`), so a new machine flies only
+    episodes are kept beside the stage copy (`partial_path`; committed by `keep_latest`), so a new machine flies only
     the rest; within a chunk, `gsmn eval --resume` keeps the finished episodes on this machine. None where `stop()`,
     asked before each chunk, says to stop (the chunks flown are kept)."""
     from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
@@ -635,22 +669,19 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
         if [int(e["env_id"]) for e in results["episodes"]] != chunk:
             raise ValueError(f"{full} holds other environments than {chunk}: remove it and start again")
         config_dict = results["config"]
-        if heads is None:
+        if heads is None:  # the first-person baselines keep no world maps: nothing to attribute
             model, *_ = load_checkpoint(ship)
-            heads = Heads.of(model)
+            heads = Heads.of(model) if getattr(model.heads, "goal", None) is not None else False
         config = RunConfig.from_dict(config_dict)
         for ep in results["episodes"]:
             stage = None
-            if not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
+            if heads and not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
                 stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
             episodes[int(ep["env_id"])] = {k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage}
         if len(episodes) < len(ids):
             write_json(partial_path(ship, split), {
                 "system": system.name, "split": split, "env_ids": ids, "stage": stage_key,
                 "config": config_dict, "episodes": [episodes[i] for i in ids if i in episodes]})
-            if commit:
-                git_commit([partial_path(ship, split)], f"table2: {system.label}, {len(episodes)} of {len(ids)} "
-                           f"{split} environments flown (partial evaluation, for resuming)", log)
     ordered = [episodes[i] for i in ids]
     radius = RunConfig.from_dict(config_dict).task.success_radius
     return {"system": system.name, "label": system.label, "recipe": recipe.to_dict(), "split": split, "env_ids": ids,
@@ -661,6 +692,17 @@ PER_STEP = ("trajectory", "actions", "stop_probabilities", "member_stop_probabil
 
 
 # -- the programme ----------------------------------------------------------------------------------------------
+def done(layout: Layout, system: System, recipe: Recipe) -> bool:
+    """Trained to this recipe's end and evaluated (on Table 1's test environments too, for TABLE1 systems, unless
+    the control missed the gate): a finished stage copy, which holds no optimizer state and is never restored."""
+    ship = layout.shipped(system)
+    stage = read_stage(ship)
+    if not (stage and stage.get("evaluated") and finished(stage, recipe) and (ship / "evaluation.json").is_file()):
+        return False
+    return (system.name not in TABLE1 or (ship / EVALUATIONS["test"][1]).is_file()
+            or control_below_gate(layout, recipe) is not None)
+
+
 def control_below_gate(layout: Layout, recipe: Recipe) -> float | None:
     """The control's dev success where it is evaluated, trained to this recipe's end and below its gate; else None."""
     ship = layout.shipped(SYSTEMS[0])
@@ -676,17 +718,22 @@ def control_below_gate(layout: Layout, recipe: Recipe) -> float | None:
 
 def run_programme(layout: Layout, recipe: Recipe, recipe_name: str, systems: list[System], parallel: int = 2,
                   commit: bool = False, device: str = "cpu") -> int:
-    """Every system's pipeline, `parallel` at a time, the machine's cores shared out among them (on two cores: one
-    thread each side by side, else two), each in its own process logging to OUT/<name>/log.txt, with a progress bar
-    per running system; training on `device`. Returns a shell status."""
+    """Every system's pipeline not yet done (`done`), `parallel` at a time, the machine's cores shared out among them
+    (on two cores: one thread each side by side, else two), each in its own process logging to OUT/<name>/log.txt,
+    with a progress bar per running system; training on `device`. Returns a shell status."""
     from tqdm import tqdm
 
     cores = len(os.sched_getaffinity(0))
     # each system collects the expert data it reads when it needs it (`collect_store`), on its share of the cores
     threads = max(1, cores // parallel)
-    pending, running, failed = list(systems), {}, []
+    pending, running, failed = [s for s in systems if not done(layout, s, recipe)], {}, []
     bars: dict[str, Any] = {}
     gate_closed = False
+    if SYSTEMS[0] in systems and SYSTEMS[0] not in pending:  # the control is done already: its gate holds at once
+        gate_closed = control_below_gate(layout, recipe) is not None
+        if gate_closed:
+            tqdm.write(f"the control flies {control_below_gate(layout, recipe):.1f} % on dev, below the recipe's "
+                       f"gate of {recipe.control_gate:.0f} %: no further system starts (docs/training.md)")
     try:
         while (pending and not gate_closed) or running:
             while pending and len(running) < parallel and not gate_closed:
@@ -797,6 +844,8 @@ PAPER = {  # Table 2 of the paper (development results): success, landmark succe
     "gsmn": (79.20, 86.00, 2.98, 1.21), "no-plan": (64.40, 82.00, 3.61, 1.75), "no-ground": (5.73, 17.73, 10.69, 10.64),
     "no-lang": (41.20, 57.20, 6.62, 3.37), "no-percept": (50.00, 63.73, 5.89, 2.55),
     "pose-noise": (74.40, 85.33, 3.01, 1.41),
+    # the paper's -J_rel and -J_goal rows are the original code's module removals (docs/model.md)
+    "no-ground-module": (5.73, 17.73, 10.69, 10.64), "no-plan-module": (64.40, 82.00, 3.61, 1.75),
 }
 
 
@@ -840,7 +889,7 @@ def table_markdown(ship: Path) -> str:
              + ", ".join(stages) + ") |", "|---|---|---|---|---|---|---|---|"]
     control = found.get(SYSTEMS[0].name)
     for system in SYSTEMS:
-        paper = " / ".join(f"{v:.2f}" for v in PAPER[system.name])
+        paper = " / ".join(f"{v:.2f}" for v in PAPER[system.name]) if system.name in PAPER else "(not in Table 2)"
         result = found.get(system.name)
         if result is None:
             lines.append(f"| {system.label} | {pending(ship / system.name)} | | | | {paper} | | |")
@@ -864,7 +913,9 @@ def orderings_markdown(ship: Path) -> str:
     noise) breaks (the control succeeds, it fails) by its attributed stage."""
     found = {name: result["episodes"] for name, result in kept_evaluations(ship).items()}
     control = found.get(SYSTEMS[0].name)
-    ablations = [s for s in SYSTEMS[1:] if s.name in found and any(k.startswith("loss.") for k in s.switch)]
+    # the objective ablations (the module removals are compared with them in `modules_markdown`)
+    ablations = [s for s in SYSTEMS[1:] if s.name in found and any(k.startswith("loss.") for k in s.switch)
+                 and s.name not in MODULE_ABLATIONS.values()]
     if control is None or not ablations:
         return "Orderings: not yet (they need the control and at least one ablation evaluated)."
 
@@ -878,13 +929,47 @@ def orderings_markdown(ship: Path) -> str:
             b_wins, a_wins = paired(found[a.name], found[b.name])
             lines.append(f"{b.label} succeeds where {a.label} fails in {b_wins}, the reverse in {a_wins}: sign test "
                          f"p {sign_test(b_wins, a_wins):.2g}")
-    for s in ranked + [s for s in SYSTEMS[1:] if s.name in found and s not in ablations]:  # pose noise too
+    others = [s for s in SYSTEMS[1:] if s.name in found and s not in ablations and s.kind.startswith("gsmn")]
+    for s in ranked + others:  # pose noise and the module removals too
         outcome = {e["env_id"]: e for e in found[s.name]}
         broken = [outcome[e["env_id"]].get("stage") for e in control
                   if e["success"] and e["env_id"] in outcome and not outcome[e["env_id"]]["success"]]
         stages = Counter(stage for stage in broken if stage)  # an evaluation without attribution has none
         lines.append(f"{s.label} breaks {len(broken)} of the control's successes: "
                      + (", ".join(f"{stage} {n}" for stage, n in stages.most_common()) or "no stage attributed"))
+    return "\n".join(lines)
+
+
+def modules_markdown(ship: Path) -> str:
+    """The two kinds of ablation side by side (objective removed / module removed with it, as the original code) for
+    J_ground and J_plan: the paper's figure, each kind's success with its Wilson interval and its paired sign test
+    against the control, and the two kinds paired with each other."""
+    found = {name: result["episodes"] for name, result in kept_evaluations(ship).items()}
+    control = found.get(SYSTEMS[0].name)
+    lines = ["| objective removed | paper (module removed) | loss removed: success % (95 % interval); vs control "
+             "(fixed / broken, p) | module removed too: success % (95 % interval); vs control | module against loss "
+             "(fixed / broken, p) |", "|---|---|---|---|---|"]
+
+    def cell(name: str) -> str:
+        if name not in found:
+            return pending(ship / name)
+        eps = found[name]
+        wins = sum(e["success"] for e in eps)
+        low, high = wilson(wins, len(eps))
+        text = f"{100 * wins / len(eps):.1f} ({low:.1f}-{high:.1f})"
+        if control is not None:
+            fixed, broken = paired(control, eps)
+            text += f"; {fixed} / {broken}, p {sign_test(fixed, broken):.2g}"
+        return text
+
+    for loss_name, module_name in MODULE_ABLATIONS.items():
+        both = ""
+        if loss_name in found and module_name in found:
+            fixed, broken = paired(found[loss_name], found[module_name])
+            both = f"{fixed} / {broken}, p {sign_test(fixed, broken):.2g}"
+        objective = BY_NAME[loss_name].label.removeprefix("GSMN without ")
+        lines.append(f"| {objective} | {PAPER[module_name][0]:.2f} | {cell(loss_name)} | {cell(module_name)} | "
+                     f"{both} |")
     return "\n".join(lines)
 
 
@@ -972,6 +1057,8 @@ def cmd_table2(args) -> int:
         print(table_markdown(layout.ship))
         print()
         print(orderings_markdown(layout.ship))
+        print()
+        print(modules_markdown(layout.ship))
         print()
         print(table1_markdown(layout.ship))
         return 0
