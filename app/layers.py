@@ -12,7 +12,9 @@
   components over the seen cells, as red, green and blue (an untrained head's reading says nothing;
   `gsmn.attribution.trained_heads`). Without J_ground the relevance layer shows the relevance map's three channels
   at once, as red, green and blue: no single channel need carry the grounding (a model trained so puts the named
-  landmark in whichever channel its goal filters read it from; docs/results.md, Figure 5).
+  landmark in whichever channel its goal filters read it from; docs/results.md, Figure 5). A model without a
+  grounding or goal filter (the original code's module ablations, docs/model.md) says so in that layer's title, and
+  shows what its next stage reads in the map's place: the semantic map's first channels.
 
 The heads are the auxiliary classifiers trained with the model (gsmn/model/heads.py), so these are the
 model's own readings of its maps. "raw" shows channel 0 of the relevance and goal maps instead.
@@ -161,6 +163,10 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         else:  # no J_ground: show all of what the goal filters read
             relevance, relevance_label = None, NO_GROUNDING_HEAD
             relevance_title = "Relevance: channels 0, 1, 2 as red, green, blue (no grounding head, no J_ground)"
+            if not heads.grounding_filter:  # nothing grounds the instruction: say so, and what stands in its place
+                relevance_title = ("No relevance map: this model has no grounding filter (as the original code's "
+                                   "-J_ground). Shown: semantic channels 0, 1, 2 as red, green, blue, what its goal "
+                                   "filter reads")
         if heads.goal_trained:
             goal = positive_probability(goal_w, heads.goal_w, heads.goal_b)
             goal_robot = positive_probability(goal_r, heads.goal_w, heads.goal_b)
@@ -169,6 +175,10 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
             goal, goal_robot = (np.asarray(m[0], np.float32) for m in (goal_w, goal_r))
             labels = (relevance_label, NO_GOAL_HEAD, NO_GOAL_HEAD)
             goal_title = "Goal: channel 0 (no goal head, no J_plan)"
+            if not heads.goal_filter:
+                first = 0 if heads.grounding_filter else 3  # the stack's channels after R (gsmn.model.gsmn)
+                goal_title = (f"No goal map: this model has no goal filter (as the original code's -J_goal). Shown: "
+                              f"semantic channel {first}, which its controller reads in the goal map's place")
     else:
         relevance, goal, goal_robot = (np.asarray(m[0], np.float32) for m in (relevance_w, goal_w, goal_r))
         labels = ("relevance channel 0", "goal channel 0", "goal channel 0")

@@ -77,6 +77,8 @@ class Heads:
     goal_trained: bool = True
     perception_trained: bool = True
     grounding_trained: bool = True
+    grounding_filter: bool = True  # False: the model has no grounding filter (the original code's -J_ground)
+    goal_filter: bool = True  # False: no goal filter (the original code's -J_goal); docs/model.md
 
     @classmethod
     def of(cls, model) -> Heads:
@@ -91,7 +93,8 @@ class Heads:
         trained = trained_heads(model)
         return cls(arr(h.perception.weight), arr(h.perception.bias), arr(h.grounding.weight),
                    arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias), trained["goal"],
-                   trained["perception"], trained["grounding"])
+                   trained["perception"], trained["grounding"], model.config.model.grounding_filter,
+                   model.config.model.goal_filter)
 
 
 def trained_heads(model) -> dict[str, bool]:

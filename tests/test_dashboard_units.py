@@ -171,6 +171,26 @@ def test_a_model_without_trained_perception_or_grounding_heads_shows_its_maps_th
     assert trained["semantic"].title == "Semantic map: most likely landmark" and "J_" not in trained["relevance"].title
 
 
+def test_a_model_without_a_filter_says_so_in_its_panel():
+    """The original code's module ablations (no grounding filter, no goal filter): the layer's title says plainly
+    that the map does not exist and what is shown in its place, the semantic channels the next stage reads."""
+    semantic = np.full((32, 32, 32), 0.1, np.float16)
+    relevance, goal = np.zeros((3, 32, 32), np.float32), np.zeros((2, 32, 32), np.float32)
+    goal_r = np.zeros((2, 64, 64), np.float32)
+    no_ground = dataclasses.replace(_heads(), grounding_trained=False, grounding_filter=False)
+    title = build_layers(semantic, relevance, goal, goal_r, no_ground)["relevance"].title
+    assert title.startswith("No relevance map: this model has no grounding filter") and "channels 0, 1, 2" in title
+    no_goal = dataclasses.replace(_heads(), goal_trained=False, goal_filter=False)
+    layers = build_layers(semantic, relevance, goal, goal_r, no_goal)
+    assert layers["goal"].title.startswith("No goal map: this model has no goal filter")
+    assert "semantic channel 0" in layers["goal"].title and "P(named)" in layers["relevance"].legend_html
+    neither = dataclasses.replace(no_goal, grounding_trained=False, grounding_filter=False)
+    assert "semantic channel 3" in build_layers(semantic, relevance, goal, goal_r, neither)["goal"].title
+    # a model that only lacks the objective keeps its filter: the title speaks of the head, not of a missing map
+    no_objective = dataclasses.replace(_heads(), goal_trained=False)
+    assert not build_layers(semantic, relevance, goal, goal_r, no_objective)["goal"].title.startswith("No goal map")
+
+
 def test_went_wrong_leaves_out_the_figures_of_untrained_heads():
     """An untrained head's figure is None at every step, which first_failures reads as wrong from step 0: the
     dashboard's "went wrong" must leave it out instead."""
