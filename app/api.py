@@ -54,11 +54,15 @@ class EpisodeRequest(Strict):
         "expert (with the model watching, when one is loaded)")
 
 
+TYPED = "the instruction as typed, where one was (null: the environment's own); `instruction` is the template flown"
+
+
 class EpisodeCreated(BaseModel):
     id: int
     status: str
     env_id: int
-    instruction: str
+    instruction: str = Field(description="the template flown: what the model reads (gsmn.task.understand)")
+    typed_instruction: str | None = Field(None, description=TYPED)
     policy: str
 
 
@@ -80,7 +84,8 @@ class EpisodeSummary(BaseModel):
     status: Literal["queued", "running", "paused", "finished", "cancelled", "failed"]
     env_id: int
     split: str
-    instruction: str
+    instruction: str = Field(description="the template flown: what the model reads (gsmn.task.understand)")
+    typed_instruction: str | None = Field(None, description=TYPED)
     landmark: str
     side: str
     goal_x: float
@@ -146,7 +151,8 @@ class GroundRequest(Strict):
 class GroundResponse(BaseModel):
     episode_id: int
     step: int
-    instruction: str
+    instruction: str = Field(description="the template grounded: what the model reads (gsmn.task.understand)")
+    typed_instruction: str = Field(description="the instruction as typed")
     landmark: str
     side: str
     goal_x: float
@@ -190,7 +196,8 @@ def _result(r: EpisodeResult | None) -> ResultModel | None:
 def summary(e: Episode) -> EpisodeSummary:
     i = e.task.instruction
     return EpisodeSummary(id=e.id, status=e.status, env_id=e.env_id, split=e.task.world.split,
-                          instruction=i.text, landmark=i.noun_phrase, side=i.side, goal_x=i.goal_x, goal_y=i.goal_y,
+                          instruction=i.text, typed_instruction=e.typed, landmark=i.noun_phrase, side=i.side,
+                          goal_x=i.goal_x, goal_y=i.goal_y,
                           policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
                           error=e.error, created=e.created)
@@ -258,7 +265,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
     def create_episode(request: EpisodeRequest) -> EpisodeCreated:
         e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint),
                         COMMAND_TIMEOUT)
-        return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction, policy=e.policy)
+        return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
+                              typed_instruction=e.typed, policy=e.policy)
 
     if keeper is not None:
         from app.kept_api import add_kept_routes
@@ -346,7 +354,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
             if heads.grounding_trained else None
         goal = positive_probability(g.goal_w, heads.goal_w, heads.goal_b) if heads.goal_trained else None
         i = g.instruction
-        return GroundResponse(episode_id=g.episode_id, step=g.step, instruction=i.text, landmark=i.noun_phrase,
+        return GroundResponse(episode_id=g.episode_id, step=g.step, instruction=i.text,
+                              typed_instruction=request.instruction, landmark=i.noun_phrase,
                               side=i.side, goal_x=i.goal_x, goal_y=i.goal_y, v=g.v, omega=g.omega,
                               stop_probability=g.stop_probability, seconds=g.seconds,
                               relevance_probability=None if relevance is None else np.round(relevance, 4).tolist(),

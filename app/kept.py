@@ -98,11 +98,12 @@ def step_of_row(row) -> StepRecord:
                       v=d["v"], omega=d["omega"], stop=d["stop"], maps=maps, stop_probability=d["stop_probability"])
 
 
-def task_json(task: Task, world_config: WorldConfig) -> str:
-    """The parsed instruction, the demonstration path, and the world settings the world is drawn with (so that the
-    episode reads back the same under a server, or `gsmn export`, started with other settings)."""
-    return json.dumps({"instruction": asdict(task.instruction), "path": np.asarray(task.path).round(4).tolist(),
-                       "world": asdict(world_config)})
+def task_json(task: Task, world_config: WorldConfig, typed: str | None = None) -> str:
+    """The parsed instruction (the template flown) and the text typed, the demonstration path, and the world settings
+    the world is drawn with (so that the episode reads back the same under a server, or `gsmn export`, started with
+    other settings)."""
+    return json.dumps({"instruction": asdict(task.instruction), "typed": typed,
+                       "path": np.asarray(task.path).round(4).tolist(), "world": asdict(world_config)})
 
 
 def _result_dict(result: EpisodeResult | None) -> str | None:
@@ -152,7 +153,7 @@ class KeptStore(EpisodeStore):
         episode = Episode(id=int(row["id"]), task=Task(world, instruction, np.array(task["path"], np.float64)),
                           policy=row["policy"], system=row["system"], checkpoint=row["checkpoint"],
                           horizon=int(row["horizon"]), status=row["status"], error=row["error"],
-                          created=float(row["created"]))
+                          created=float(row["created"]), typed=task.get("typed"))
         if row["result"] is not None:
             episode.result = EpisodeResult(**json.loads(row["result"]))
         episode.steps.extend(step_of_row(r) for r in self.db.kept_steps(episode_id))
@@ -274,7 +275,7 @@ class EpisodeKeeper(RunnerListener):
         world = episode.task.world
         self.db.add_kept({"id": episode.id, "created": time.time(), "status": episode.status, "env_id": world.env_id,
                           "split": world.split, "instruction": episode.instruction,
-                          "task": task_json(episode.task, self.store.config.world),
+                          "task": task_json(episode.task, self.store.config.world, episode.typed),
                           "policy": episode.policy, "system": episode.system, "checkpoint": episode.checkpoint,
                           "horizon": episode.horizon})
 
@@ -367,7 +368,8 @@ def row_summary(row) -> dict[str, Any]:
     task = json.loads(row["task"])
     i = task["instruction"]
     return {"id": int(row["id"]), "status": row["status"], "env_id": int(row["env_id"]), "split": row["split"],
-            "instruction": row["instruction"], "landmark": i["noun_phrase"], "side": i["side"],
+            "instruction": row["instruction"], "typed_instruction": task.get("typed"),
+            "landmark": i["noun_phrase"], "side": i["side"],
             "goal_x": i["goal_x"], "goal_y": i["goal_y"], "policy": row["policy"], "system": row["system"],
             "checkpoint": row["checkpoint"], "steps": int(row["steps"]), "horizon": int(row["horizon"]),
             "steps_per_second": None, "result": json.loads(row["result"]) if row["result"] else None,

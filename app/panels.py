@@ -116,22 +116,25 @@ def parse_env_id(text) -> int:
 
 
 def instruction_parts(text: str, world) -> tuple[str | None, str | None]:
-    """The side and the landmark name of this world that a (partial) instruction already holds, if any."""
-    from gsmn.task.instructions import SIDES, tokenize
+    """The side and the landmark name of this world that a (partial) instruction already holds, if any, as
+    `gsmn.task.understand` reads them ("behind the tank" holds the back side and the tank)."""
+    from gsmn.task.understand import understand
 
-    tokens = tokenize(text or "")
-    side = next((s for s in SIDES if s in tokens), None)
-    joined = " " + " ".join(tokens) + " "
-    names = sorted({lm.noun_phrase for lm in world.landmarks}, key=lambda n: -len(n))
-    name = next((n for n in names if f" {n} " in joined), None)
-    return side, name
+    u = understand(text or "", world)
+    names = {lm.noun_phrase for lm in world.landmarks}
+    return u.side, u.landmark if u.landmark in names else None
 
 
 def suggestions(text: str, world) -> tuple[str, ...]:
-    """The landmark names of this world to offer under the instruction box: those starting with the word being typed
-    (after "of the"), else all of them, sorted."""
+    """The landmark names of this world to offer under the instruction box: the candidates where several kinds fit
+    what is typed ("the tree" with a fir tree and a palm tree), those starting with the word being typed (after
+    "of the"), else all of them, sorted."""
     from gsmn.task.instructions import tokenize
+    from gsmn.task.understand import understand
 
+    candidates = understand(text or "", world).candidates
+    if candidates:
+        return tuple(c.noun_phrase for c in candidates)
     names = sorted({lm.noun_phrase for lm in world.landmarks})
     tokens = tokenize(text or "")
     tail = text.rstrip() == text and tokens and not text.endswith(" ")

@@ -131,6 +131,7 @@ class Episode:
     fork: Any = None  # app.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
     comparison: int | None = None  # the comparison it flies in (app.compare)
     origin: str | None = None  # the browser tab that started it (app.commands.Command.origin); None: the API
+    typed: str | None = None  # the instruction as typed (gsmn.task.understand); the task's is the template flown
 
     @property
     def env_id(self) -> int:

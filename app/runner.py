@@ -432,7 +432,8 @@ class Runner(ComparingRunner):
         episode = Episode(id=self.episodes.new_id(), task=task, policy=c.policy,
                           system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
-                          horizon=self.config.task.horizon, start_paused=c.paused, origin=self._origin)
+                          horizon=self.config.task.horizon, start_paused=c.paused, origin=self._origin,
+                          typed=c.instruction.strip() if c.instruction and c.instruction.strip() else None)
         return episode
 
     def _do_Pause(self, c: Pause) -> bool:

@@ -104,6 +104,7 @@ from app.viewer_events import (
 )
 from gsmn.model.grid import world_cell
 from gsmn.task.instructions import SIDES, InstructionError, parse_instruction
+from gsmn.task.understand import understand
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
 
 log = logging.getLogger("gsmn.dashboard")
@@ -478,15 +479,18 @@ class Viewer(RunnerListener):
         if world is None:
             self._can_fly(False, None)
             return error_html("**Cannot fly this:** the environment id is not a whole number from 0 up.")
-        try:
-            instruction = parse_instruction(text, world)
-        except InstructionError as e:
+        understood = understand(text, world)
+        instruction = understood.instruction
+        if instruction is None:
             self._can_fly(False, None)
-            return error_html(f"**Cannot fly this:** {html.escape(str(e))}")
+            if understood.candidates:
+                return error_html(f"**Pick one:** {html.escape(understood.reason or '')}. The chips below name them.")
+            # the chips below list the world's landmarks: the note gives the reason and two instructions to try
+            return error_html(f"**Cannot fly this:** {html.escape(understood.message(tries=2, listing=False))}")
         self._can_fly(True, (world, instruction))
         note = f" ({which_landmark(world, instruction)})" if instruction.ambiguous else ""
-        return (f"Understood: the **{instruction.side}** side of the **{instruction.noun_phrase}**{note}. "
-                + side_help(world, instruction))
+        ignored = (f" Ignored: {html.escape(', '.join(understood.ignored))}." if understood.ignored else "")
+        return (f"Understood as: **{html.escape(instruction.text)}**{note}.{ignored} " + side_help(world, instruction))
 
     def _can_fly(self, ok: bool, sides) -> None:
         self.run_button.color = "green" if ok else "gray"
@@ -526,13 +530,12 @@ class Viewer(RunnerListener):
         text, episode = self.whatif.value.strip(), self.view.episode
         if not text or episode is None:
             return
-        try:
-            instruction = parse_instruction(text, episode.task.world)
-        except InstructionError as e:
-            self.whatif_note.content = error_html(f"**Cannot ground this:** {html.escape(str(e))}")
+        understood = understand(text, episode.task.world)
+        if understood.instruction is None:
+            self.whatif_note.content = error_html(f"**Cannot ground this:** {html.escape(understood.message())}")
             return
-        self.whatif_note.content = (f"Understood: the **{instruction.side}** side of the "
-                                    f"**{instruction.noun_phrase}**. Press **Ground**.")
+        self.whatif_note.content = (f"Understood as: **{html.escape(understood.instruction.text)}**. "
+                                    "Press **Ground**.")
 
     def _on_whatif(self, event: viser.GuiEvent) -> None:
         if event.target.value == "Clear":

@@ -64,6 +64,17 @@ def cmd_world(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_understand(args: argparse.Namespace) -> int:
+    """Free text read in an environment's world as the template the model flies (gsmn.task.understand): status 0
+    and the template, or status 2 and why not, with the nearest instructions this world allows."""
+    from gsmn.task.understand import understand
+    from gsmn.world.spec import world_for_env
+
+    u = understand(" ".join(args.text), world_for_env(args.env_id, config_from_args(args).world))
+    print(json.dumps(u.to_dict(), indent=1) if args.json else u.message())
+    return 0 if u.ok else 2
+
+
 def world_summary(world) -> dict:
     """The WorldSpec as the CLI prints it: landmarks with name, noun phrase, x, y, radius; start pose."""
     return {
@@ -433,6 +444,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=str, default=None, help="folder to write the PNGs into")
     add_config_arguments(p)
     p.set_defaults(func=cmd_world)
+
+    p = sub.add_parser("understand", help="read a typed instruction in an environment's world as the template the "
+                       "model flies, or say why not (the page and the API read typed text the same way)")
+    p.add_argument("--env-id", type=int, required=True, help="environment id (its world's landmarks)")
+    p.add_argument("--json", action="store_true", help="print everything understood as JSON")
+    p.add_argument("text", nargs="+", help='e.g. "fly behind the red phone booth"')
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_understand)
 
     p = sub.add_parser("eval", help="fly a system on environments and print its Table 1 row")
     p.add_argument("--system", required=True,

@@ -138,7 +138,7 @@ def test_the_model_as_a_mirror_ensemble(server):
     ("post", "/api/episodes", {"env_id": "seventy"}, 422, "env_id"),
     ("post", "/api/episodes", {}, 422, "env_id"),
     ("post", "/api/episodes", {"env_id": 70, "colour": "red"}, 422, "colour"),
-    ("post", "/api/episodes", {"env_id": 70, "instruction": "fly to the moon"}, 422, "unknown words: fly, moon"),
+    ("post", "/api/episodes", {"env_id": 70, "instruction": "fly to the moon"}, 422, "not a landmark: moon"),
     ("post", "/api/episodes", {"env_id": 70, "instruction": "go to the left side of the anvil"}, 422,
      "no anvil in this world"),
     ("post", "/api/episodes", {"env_id": 70, "instruction": "go to the pumpkin"}, 422, "no side"),
@@ -154,7 +154,7 @@ def test_the_model_as_a_mirror_ensemble(server):
     ("post", "/api/ground", {"episode_id": 1, "instruction": "go to the left side of the box", "step": 5000}, 422,
      "not recorded"),
     ("post", "/api/ground", {"episode_id": 1, "instruction": "go to the left side of the spaceship"}, 422,
-     "unknown word: spaceship"),
+     "not a landmark: spaceship"),
 ])
 def test_bad_input_gets_a_4xx_that_says_what_was_wrong(server, method, path, payload, status, words):
     client = server["client"]

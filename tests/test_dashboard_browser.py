@@ -60,7 +60,7 @@ def test_type_run_watch_finish_and_ask_what_if(dashboard, page):
     page.get_by_text("Not started").first.wait_for()
     instruction.fill("go to the left side of the moon")
     instruction.press("Enter")
-    page.get_by_text("unknown word: moon").first.wait_for()
+    page.get_by_text("not a landmark: moon").first.wait_for()
 
     instruction.fill("go to the back side of the box")
     instruction.press("Enter")

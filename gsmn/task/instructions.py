@@ -15,8 +15,8 @@ Departures: the paper's figures write "... side of fir tree" without "the" befor
 "the" and `parse_instruction` accepts either. We also redraw instructions whose goal lies outside the field
 (`TaskConfig.goal_in_field`): their demonstration would leave the field, which the original rejects.
 
-`parse_instruction` turns free text from the dashboard into an `Instruction` for a given world, with error
-messages meant for users.
+`parse_instruction` turns free text from the dashboard into an `Instruction` for a given world through
+`gsmn.task.understand` (everyday phrasings read as the template, refusals meant for users).
 """
 
 from __future__ import annotations
@@ -117,42 +117,13 @@ def instruction_for_env(world: WorldSpec, config: TaskConfig | None = None) -> I
     return sample_instruction(world, rng_for_instruction(world.env_id, config.seed), config)
 
 
-def _find(tokens: list[str], phrase: list[str]) -> bool:
-    n = len(phrase)
-    return any(tokens[i:i + n] == phrase for i in range(len(tokens) - n + 1))
-
-
 def parse_instruction(text: str, world: WorldSpec) -> Instruction:
-    """Understand free text such as "Go to the LEFT side of the red barrel!" in `world`.
-
-    Finds the side and the longest known noun phrase in the text. An ambiguous phrase (several landmarks of
-    the world share it) resolves to the first of them, with `ambiguous=True`. Raises `InstructionError`
-    with a message for users when words are unknown, no or several sides are named, or the named landmark
-    is not in this world.
+    """Understand free text such as "fly behind the red phone booth" in `world` as the template the model knows
+    (`gsmn.task.understand`): the returned Instruction's text is the template flown. An ambiguous phrase (several
+    landmarks of the world share it) resolves to the first of them, with `ambiguous=True`. Raises
+    `InstructionError` with a message for users (why, and the nearest instructions this world allows) when no or
+    two sides, no or two landmarks, or a landmark this world lacks are named, or several landmark kinds fit.
     """
-    tokens = tokenize(text)
-    in_world = sorted({lm.noun_phrase for lm in world.landmarks})
-    example = TEMPLATE.format(side="left", noun_phrase=in_world[0]) if in_world else TEMPLATE
-    if not tokens:
-        raise InstructionError(f"the instruction is empty; try e.g. \"{example}\"")
-    unknown = sorted(set(tokens) - set(VOCABULARY), key=tokens.index)
-    if unknown:
-        raise InstructionError(f"unknown word{'s' if len(unknown) > 1 else ''}: {', '.join(unknown)}. "
-                               f"Instructions look like \"{example}\"")
-    sides = [s for s in SIDES if s in tokens]
-    if not sides:
-        raise InstructionError(f"no side named: say left, right, front or back, e.g. \"{example}\"")
-    if len(sides) > 1:
-        raise InstructionError(f"several sides named ({', '.join(sides)}); name exactly one")
-    named = [p for p in NOUN_PHRASES if _find(tokens, p.split())]
-    if not named:
-        raise InstructionError(f"no landmark named; this world has: {', '.join(in_world)}")
-    # Keep the longest phrases: "red barrel" rather than the "barrel" inside it.
-    longest = [p for p in named if not any(q != p and _find(q.split(), p.split()) for q in named)]
-    if len(longest) > 1:
-        raise InstructionError(f"several landmarks named ({', '.join(longest)}); name exactly one")
-    phrase = longest[0]
-    matches = [i for i, lm in enumerate(world.landmarks) if lm.noun_phrase == phrase]
-    if not matches:
-        raise InstructionError(f"there is no {phrase} in this world; it has: {', '.join(in_world)}")
-    return make_instruction(world, matches[0], sides[0])
+    from gsmn.task.understand import understood_instruction
+
+    return understood_instruction(text, world)
