@@ -91,8 +91,10 @@ def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, checkpoint
     try:
         done = finished(server.client, server.client.post("/api/episodes", json={"env_id": 70}).json()["id"])
         assert done["status"] == "finished" and done["steps"] > 5
+        typed = "please land in front of the fountain"  # in people's words: kept beside the template flown
         expert = finished(server.client, server.client.post(
-            "/api/episodes", json={"env_id": 71, "policy": "expert"}).json()["id"])
+            "/api/episodes", json={"env_id": 71, "policy": "expert", "instruction": typed}).json()["id"])
+        assert (expert["typed_instruction"], expert["instruction"]) == (typed, "go to the front side of the fountain")
         before = {s["step"]: s for s in server.client.get(f"/api/episodes/{done['id']}/steps").json()["steps"]}
         camera = server.client.get(f"/api/episodes/{done['id']}/steps/3/camera.jpg").content
         # one more, killed while it flies: the steps written before the kill are kept
@@ -114,6 +116,8 @@ def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, checkpoint
         assert again["status"] == "finished" and again["steps"] == done["steps"]
         assert again["result"] == done["result"] and again["instruction"] == done["instruction"]
         assert listed[expert["id"]]["policy"] == "expert" and listed[expert["id"]]["steps"] == expert["steps"]
+        assert (listed[expert["id"]]["typed_instruction"], listed[expert["id"]]["instruction"]) == \
+            (typed, expert["instruction"]) and again["typed_instruction"] is None
         steps = c.get(f"/api/episodes/{done['id']}/steps").json()["steps"]
         assert [s["step"] for s in steps] == sorted(before) and len(steps) == done["steps"]
         for s in steps:  # poses and actions as flown
