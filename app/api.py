@@ -4,9 +4,9 @@ ground counterfactual instructions on an episode's semantic map at any step.
 It posts the same runner commands as the page (`app.runner`), so both share one behaviour. Handlers are plain
 `def`s: FastAPI runs them on its thread pool, where waiting for the runner blocks nobody else. Every error
 answers with a JSON body {"detail": "<what was wrong>"}: 404 for unknown episodes, 409 when the request does not
-fit the state (no model loaded, no map yet, the queue full), 422 for bad input (unknown words, env_id < 0, NaN,
-missing checkpoint; `app.schema` says what every input may be), 503 when the simulator does not answer in time;
-401, 403 and 421 from the access checks (`app.access`). The OpenAPI schema lists each route's.
+fit the state (no model loaded, no map yet, the queue full), 422 for bad input (an instruction that cannot be
+understood, env_id < 0, NaN, missing checkpoint; `app.schema` says what every input may be), 503 when the simulator
+does not answer in time; 401, 403 and 421 from the access checks (`app.access`). The OpenAPI schema lists each route's.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.colors import png_bytes, upscale
 from app.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
+from app.db import RecordError
 from app.layers import LAYERS, map_layers
 from app.recording import Episode, EpisodeResult
 from app.runner import Runner
@@ -101,6 +102,10 @@ class EpisodeSummary(BaseModel):
     pinned: bool = Field(False, description="kept whatever the retention limit (PUT /api/episodes/{id}/pin)")
     created: float | None = Field(None, description="unix time it was queued or started flying")
     bytes: int | None = Field(None, description="what its steps take in the record (null: not written yet)")
+    kept_steps: int | None = Field(None, description="the steps the record holds (null: no record); below `steps` "
+                                   "while steps wait to be written, or where some could not be kept")
+    keeping: str | None = Field(None, description="why some of its steps are not in the record (waiting for a full "
+                                "disk, say, or given up); null when they all are")
 
 
 class ModelStep(BaseModel):
@@ -130,6 +135,8 @@ class StepModel(BaseModel):
     model: ModelStep | None = Field(description="the model's own action at this step, when a model watched")
     truth: TruthFigures | None = Field(None, description="the maps' agreement with the ground truth at this step "
                                        "(docs/compare.md), when a model watched")
+    damaged: str | None = Field(None, description="why this step's maps cannot be read back from the record (its "
+                                "bytes were damaged); null when they can")
 
 
 class StepsResponse(BaseModel):
@@ -282,8 +289,12 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
              summary="Status, steps and result")
     def get_episode(episode_id: EpisodeId) -> EpisodeSummary:
         e = episode_or_404(episode_id)
-        pinned = getattr(runner.episodes, "pinned", None)  # app.kept.KeptStore
-        return summary(e).model_copy(update={"pinned": pinned(e.id)}) if pinned else summary(e)
+        if keeper is None:
+            return summary(e)
+        row = keeper.db.kept(e.id)  # what the record holds of it: never more than that is said to be kept
+        return summary(e).model_copy(update={
+            "pinned": bool(row["pinned"]) if row else False, "bytes": int(row["bytes"]) if row else None,
+            "kept_steps": int(row["steps"]) if row else 0, "keeping": keeper.behind(e.id)})
 
     @app.delete("/api/episodes/{episode_id}", response_model=EpisodeSummary,
                 responses=responses(404, 409, 422, 503), summary="Cancel an episode: drop it from the queue, or end "
@@ -304,7 +315,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                            v=s.v, omega=s.omega, stop=s.stop,
                            model=ModelStep(v=s.maps.v, omega=s.maps.omega, stop_probability=s.maps.stop_probability)
                            if s.maps else None, truth=TruthFigures(perception=f.perception, relevance=f.relevance,
-                                                                   goal=f.goal) if f else None)
+                                                                   goal=f.goal) if f else None, damaged=s.damaged)
                  for s, f in zip(records, figures, strict=True)]
         return StepsResponse(episode_id=e.id, status=e.status, steps=steps,
                              went_wrong=went_wrong(figures, model.heads if model else None))
@@ -330,6 +341,8 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         if layer not in LAYERS + TRUTH_LAYERS:
             raise RunnerError(f"unknown layer {layer!r}; choose from {', '.join(LAYERS + TRUTH_LAYERS)}")
         record = step_of(e, step)
+        if record.damaged:
+            raise RecordError(record.damaged)
         from app.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
 
         heads = heads_for(runner, e)

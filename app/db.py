@@ -236,13 +236,21 @@ class Database:
 
     def __init__(self, path: Path | str):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
+        unwritable = (f"the folder {self.path.parent} must be writable with room to spare: free space, make it "
+                      "writable, or give another --data-dir")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise RecordError(f"cannot make the folder of the record {self.path} ({e.strerror or e}): "
+                              f"{unwritable}") from e
         keep = ("Nothing was changed: move it away (a new record then starts; the job folders beside it are kept) "
                 "or give another --data-dir.")
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise RecordError(f"{self.path} is empty (0 bytes), not a dashboard record: it was cut short or "
                               f"overwritten. {keep}")
+        if not self.path.exists():  # a new record: a failure is the folder's, not a file's to move away
+            keep = unwritable
         try:
             self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10)
             self._db.row_factory = sqlite3.Row
@@ -250,11 +258,20 @@ class Database:
             if check != "ok":
                 self._db.close()
                 raise RecordError(f"{self.path} is damaged (SQLite's quick check: {check}). {keep}")
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
             version = self._db.execute("PRAGMA user_version").fetchone()[0]
         except sqlite3.Error as e:
+            if keep is unwritable:
+                raise RecordError(f"cannot create the record {self.path} ({e}): {unwritable}") from e
             raise RecordError(f"{self.path} is not a readable dashboard record ({e}). {keep}") from e
+        try:
+            self._upgrade(version)
+        except sqlite3.Error as e:  # a full disk or a read-only file, found by the first write
+            raise RecordError(f"cannot write the record {self.path} ({e}): {unwritable}") from e
+
+    def _upgrade(self, version: int) -> None:
+        """Bring the record to SCHEMA_VERSION (the first writes of a start)."""
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
         if version > SCHEMA_VERSION:
             raise RuntimeError(f"{self.path} was written by a newer version (schema {version}); use another "
                                "--data-dir")
@@ -402,8 +419,13 @@ class Database:
         return int(rows[0]["seq"]) + 1 if rows else 1
 
     def add_kept(self, values: dict[str, Any]) -> None:
-        """Insert or replace a kept episode's row (`values` by column; JSON columns already encoded)."""
-        self._insert("kept_episodes", values, replace=True)
+        """Insert a kept episode's row, or update the columns given of the row with its id (`values` by column; JSON
+        columns already encoded): an episode's row is written when it is accepted and again when it starts flying,
+        and the second keeps what the row has gathered since (its steps' count and bytes, its pin)."""
+        names = list(values)
+        sql = (f"INSERT INTO kept_episodes ({', '.join(names)}) VALUES ({', '.join('?' for _ in names)}) "
+               f"ON CONFLICT(id) DO UPDATE SET {', '.join(f'{k} = excluded.{k}' for k in names if k != 'id')}")
+        self._execute(sql, tuple(_encode(k, values[k]) for k in names))
 
     def update_kept(self, episode_id: int, **values: Any) -> None:
         sets = ", ".join(f"{k} = ?" for k in values)
@@ -421,8 +443,14 @@ class Database:
                                  "episode_id = ?), bytes = bytes + ? WHERE id = ?", (episode_id, size, episode_id))
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                self._rollback()
                 raise
+
+    def _rollback(self) -> None:
+        """Roll back the transaction in progress, where SQLite has not done so itself (it rolls back on a full disk,
+        and a second ROLLBACK would hide the real error behind "no transaction is active")."""
+        if self._db.in_transaction:
+            self._db.execute("ROLLBACK")
 
     def kept(self, episode_id: int) -> sqlite3.Row | None:
         rows = self._all("SELECT * FROM kept_episodes WHERE id = ?", (episode_id,))
@@ -441,6 +469,16 @@ class Database:
         row = self._all("SELECT count(*) AS n, coalesce(sum(pinned), 0) AS p FROM kept_episodes")[0]
         return {"episodes": int(row["n"]), "pinned": int(row["p"])}
 
+    def file_bytes(self) -> int:
+        """The record's files on disk: the database and its write-ahead log and shared-memory files."""
+        total = 0
+        for suffix in ("", "-wal", "-shm"):
+            try:
+                total += (self.path.parent / (self.path.name + suffix)).stat().st_size
+            except OSError:
+                pass
+        return total
+
     def kept_bytes(self) -> int:
         return int(self._all("SELECT coalesce(sum(bytes), 0) AS b FROM kept_episodes")[0]["b"])
 
@@ -452,5 +490,5 @@ class Database:
                 self._db.execute("DELETE FROM kept_episodes WHERE id = ?", (episode_id,))
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                self._rollback()
                 raise

@@ -216,6 +216,24 @@ class JobManager:
         return compare(self.db, self.evaluation(before_id), self.evaluation(after_id))
 
     # -- runs ----------------------------------------------------------------------------------------------------
+    def _expert_store(self, name: str | None) -> Path | None:
+        """`expert_data` as a folder inside the data folder (a path relative to it, or an absolute one inside it):
+        the run cleans and links files in that store, so a request cannot point it anywhere else; the refusal is
+        the same whether the folder exists or not."""
+        if name is None:
+            return None
+        refused = RunnerError(f"expert_data {name!r} is not an episode store inside the data folder ({self.root}): "
+                              "name one there (a folder `gsmn collect --out` made), or leave it out to collect one")
+        if not name.strip():
+            raise refused
+        try:
+            path = (self.root / name).resolve()  # an absolute name stays itself
+            if not path.is_relative_to(self.root) or path == self.root or not path.is_dir():
+                raise refused
+        except (OSError, RuntimeError) as e:
+            raise refused from e
+        return path
+
     def start_run(self, settings: RunSettings, checkpoint: str | None = None, env_ids: list[int] | None = None,
                   evaluation_id: int | None = None) -> Run:
         """Launch DAggerFM from a checkpoint on the train split, on `env_ids`, or on the failures of
@@ -240,9 +258,7 @@ class JobManager:
             if getattr(settings, name) > CORES:
                 raise RunnerError(f"{name} must be at most {CORES} (this machine's cores), got "
                                   f"{getattr(settings, name)}")
-        if settings.expert_data is not None and (not settings.expert_data.strip()
-                                                 or not Path(settings.expert_data).is_dir()):
-            raise RunnerError(f"expert_data {settings.expert_data!r} is not an episode store folder")
+        expert_data = self._expert_store(settings.expert_data)
         with self.supervisor.lock:
             self.supervisor.check_limit("run", self.max_runs, "--max-runs")
             rid = self.db.add_run(settings=settings.to_dict(), env_ids=env_ids, init_checkpoint=str(init),
@@ -252,8 +268,8 @@ class JobManager:
             (folder / "config.json").write_text(config.to_json() + "\n")
             # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
             # chosen environments, in the run's folder; else the train split's, shared by runs with the same settings
-            if settings.expert_data:
-                store = Path(settings.expert_data).resolve()  # the job runs in the repository, not our cwd
+            if expert_data is not None:
+                store = expert_data
             elif env_ids is not None:
                 store = folder / "expert"
             else:

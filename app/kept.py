@@ -20,13 +20,14 @@ replayed, pinned and exported later.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import logging
 import queue
 import threading
 import time
 import traceback
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import asdict
 from typing import Any
 
@@ -34,7 +35,18 @@ import numpy as np
 
 from app.commands import RunnerListener
 from app.db import Database
-from app.recording import FAILED, FINISHED, LIVE, Episode, EpisodeResult, EpisodeStore, StepMaps, StepRecord
+from app.recording import (
+    CANCELLED,
+    FAILED,
+    FINISHED,
+    LIVE,
+    QUEUED,
+    Episode,
+    EpisodeResult,
+    EpisodeStore,
+    StepMaps,
+    StepRecord,
+)
 from gsmn.config import RunConfig, WorldConfig
 from gsmn.task.instructions import Instruction
 from gsmn.task.rollout import Task
@@ -86,16 +98,25 @@ def step_row(record: StepRecord) -> tuple[int, str, bytes, bytes | None]:
     return record.step, json.dumps(data), record.camera_jpeg, pack_maps(m.maps) if m is not None else None
 
 
-def step_of_row(row) -> StepRecord:
+def step_of_row(row, where: str = "the record") -> StepRecord:
+    """A kept step. Maps whose bytes were damaged in the record (SQLite's own checks cannot see inside a blob) come
+    back as none, with `damaged` saying so, so the rest of the episode still reads."""
     d = json.loads(row["data"])
     model = d["model"]
-    maps = None
+    maps, damaged = None, None
     if model is not None and row["maps"] is not None:
-        maps = StepMaps(maps=unpack_maps(row["maps"]), pose=np.array(model["pose"], np.float32), v=model["v"],
-                        omega=model["omega"], stop_probability=model["stop_probability"])
+        try:
+            unpacked = unpack_maps(row["maps"])
+        except Exception as e:  # noqa: BLE001 - zip, zlib and numpy each fail in their own way on damaged bytes
+            damaged = (f"step {row['step']}'s maps are damaged in {where} and cannot be read ({type(e).__name__}: "
+                       f"{e}); the episode's other steps read")
+        else:
+            maps = StepMaps(maps=unpacked, pose=np.array(model["pose"], np.float32), v=model["v"],
+                            omega=model["omega"], stop_probability=model["stop_probability"])
     return StepRecord(step=int(row["step"]), time=d["time"], position=tuple(d["position"]), yaw=d["yaw"],
                       T_world_camera=np.array(d["T_world_camera"], np.float32), camera_jpeg=bytes(row["camera"]),
-                      v=d["v"], omega=d["omega"], stop=d["stop"], maps=maps, stop_probability=d["stop_probability"])
+                      v=d["v"], omega=d["omega"], stop=d["stop"], maps=maps, stop_probability=d["stop_probability"],
+                      damaged=damaged)
 
 
 def task_json(task: Task, world_config: WorldConfig, typed: str | None = None) -> str:
@@ -121,6 +142,13 @@ class KeptStore(EpisodeStore):
         self._next_id = db.next_kept_id()
         self._loaded: OrderedDict[int, Episode] = OrderedDict()  # episodes read back from the record
         self._cache = cache
+
+    def add(self, episode: Episode) -> None:
+        """Accept an episode: its row goes into the record at once (queued), so its id is the record's from then on,
+        never given again, and a server stopped before it flies keeps it as not flown. A record that cannot be
+        written refuses it (RecordError, 503, naming the file)."""
+        self.db.add_kept(kept_row(episode, self.config.world))
+        super().add(episode)
 
     def get_in_memory(self, episode_id: int) -> Episode | None:
         return super().get(episode_id)
@@ -156,7 +184,7 @@ class KeptStore(EpisodeStore):
                           created=float(row["created"]), typed=task.get("typed"))
         if row["result"] is not None:
             episode.result = EpisodeResult(**json.loads(row["result"]))
-        episode.steps.extend(step_of_row(r) for r in self.db.kept_steps(episode_id))
+        episode.steps.extend(step_of_row(r, str(self.db.path)) for r in self.db.kept_steps(episode_id))
         return episode
 
     def missing(self, episode_id: int) -> str:
@@ -178,16 +206,38 @@ class KeptStore(EpisodeStore):
         return bool(row["pinned"]) if row is not None else False
 
 
+def kept_row(episode: Episode, world_config: WorldConfig) -> dict[str, Any]:
+    """An episode's row as it is accepted or starts flying (its steps' count, bytes and pin are the record's)."""
+    world = episode.task.world
+    return {"id": episode.id, "created": episode.created, "status": episode.status, "env_id": world.env_id,
+            "split": world.split, "instruction": episode.instruction,
+            "task": task_json(episode.task, world_config, episode.typed), "policy": episode.policy,
+            "system": episode.system, "checkpoint": episode.checkpoint, "horizon": episode.horizon,
+            "error": episode.error}
+
+
 class EpisodeKeeper(RunnerListener):
     """Records each episode the runner flies into `store`'s record, step by step, on a writer thread; applies the
-    retention limit after each episode and on start."""
+    retention limit after each episode and on start.
 
-    def __init__(self, store: KeptStore, limit_bytes: int, live: callable = lambda: None):
+    A write that fails (a full disk, a read-only folder) loses nothing: what was taken from the queue stays pending
+    and is written again every `retry_seconds` until it goes in, in its order, and meanwhile `error` says why (the
+    record names its file; logged once, and once more when keeping resumes). Pending steps are bounded: past
+    `max_pending_steps` the oldest are given up, and their episode's row says how many of its steps were not kept
+    (`cut`), so nothing reports more than the record holds."""
+
+    def __init__(self, store: KeptStore, limit_bytes: int, live: callable = lambda: None,
+                 retry_seconds: float = 2.0, max_pending_steps: int = 4000):
         self.store, self.db = store, store.db
         self.limit_bytes = int(limit_bytes)
         self._live = live  # the id of the episode flying now (never removed)
+        self.retry_seconds, self.max_pending_steps = retry_seconds, max_pending_steps
         self._queue: queue.Queue = queue.Queue()
+        self._pending: deque = deque()  # taken from the queue, not yet written (the writer's own)
         self._started: set[int] = set()
+        self.cut: dict[int, int] = {}  # episode id -> steps given up while the record could not be written
+        self.unwritten: dict[int, int] = {}  # episode id -> its steps waiting to be written (read by the API)
+        self.error: str | None = None  # why the last write failed, until one succeeds
         self.removed: list[int] = []  # ids removed by the retention limit, oldest first
         self._retention = threading.Lock()  # the writer (after an episode) and the API (a new limit) both apply it
         self._settle_interrupted()
@@ -196,97 +246,168 @@ class EpisodeKeeper(RunnerListener):
         self.thread.start()
 
     def _settle_interrupted(self) -> None:
-        """Episodes a stopped server left flying: failed, with the steps that were written."""
+        """Episodes a stopped server left flying: failed, with the steps that were written; left queued: kept, as
+        not flown."""
         for row in self.db.search_kept([f"status IN ({','.join('?' * len(LIVE))})"], list(LIVE), False, 10**9, 0):
-            self.db.update_kept(int(row["id"]), status=FAILED, error=(
-                f"the server stopped while it flew; the {row['steps']} steps written before are kept"))
+            if row["status"] == QUEUED:
+                self.db.update_kept(int(row["id"]), status=CANCELLED, error=(
+                    "not flown: the server stopped before its turn came"))
+            else:
+                self.db.update_kept(int(row["id"]), status=FAILED, error=(
+                    f"the server stopped while it flew; the {row['steps']} steps written before are kept"))
+
+    def behind(self, episode_id: int) -> str | None:
+        """Why some of this episode's steps are not (yet) in the record; None when they all are."""
+        waiting, cut = self.unwritten.get(episode_id, 0), self.cut.get(episode_id, 0)
+        if not waiting and not cut:
+            return None
+        parts = ([f"{waiting} steps wait to be written"] if waiting else []) + (
+            [f"{cut} steps could not be kept"] if cut else [])
+        return "; ".join(parts) + (f" ({self.error}); retried every {self.retry_seconds:g} s" if self.error else "")
 
     # -- the runner's thread: only enqueue --------------------------------------------------------------------------
     def on_episode_start(self, episode: Episode) -> None:
         # the steps it starts with: a fork's steps 0..t-1 are the original's (app.compare), never told one by one
+        self._count(episode.id, len(episode.steps))
         self._queue.put(("start", episode, tuple(episode.steps)))
 
     def on_step(self, episode: Episode, record: StepRecord) -> None:
+        self._count(episode.id, 1)
         self._queue.put(("step", episode, record))
 
     def on_episode_end(self, episode: Episode) -> None:
         self._queue.put(("end", episode, None))
 
-    def flush(self, timeout: float = 10.0) -> None:
-        """Wait until everything enqueued so far is written."""
+    def _count(self, episode_id: int, n: int) -> None:
+        self.unwritten[episode_id] = self.unwritten.get(episode_id, 0) + n
+
+    def flush(self, timeout: float = 10.0) -> bool:
+        """Wait until everything enqueued so far is written; False if it was not within `timeout`, and at once
+        while the record cannot be written (`error`): readers then see what it holds."""
+        if self.error is not None:
+            return False
         done = threading.Event()
         self._queue.put(("flush", done, None))
-        done.wait(timeout)
+        return done.wait(timeout)
 
     def close(self, timeout: float = 10.0) -> None:
         self._queue.put(None)
         self.thread.join(timeout)
 
     # -- the writer ---------------------------------------------------------------------------------------------------
+    def _take(self, timeout: float | None) -> bool:
+        """Move what the queue holds into the pending items (waiting up to `timeout` for the first); False if none."""
+        try:
+            self._pending.append(self._queue.get(timeout=timeout))
+        except queue.Empty:
+            return False
+        try:
+            while len(self._pending) < self.max_pending_steps + 200:
+                self._pending.append(self._queue.get_nowait())
+        except queue.Empty:
+            pass
+        return True
+
     def _loop(self) -> None:
         while True:
-            items = [self._queue.get()]
+            if not self._pending:
+                self._take(None)
+            else:  # after a failed write: wait, taking what comes meanwhile, then try again
+                deadline = time.monotonic() + self.retry_seconds
+                while (left := deadline - time.monotonic()) > 0 and None not in self._pending:
+                    self._take(left)
             try:
-                while len(items) < 200:
-                    items.append(self._queue.get_nowait())
-            except queue.Empty:
-                pass
-            try:
-                stop = self._write(items)
-            except Exception:  # noqa: BLE001 - a full disk must not stop the simulator; the log says so
-                log.error("keeping episodes failed:\n%s", traceback.format_exc())
-                stop = None in items
-            if stop:
-                return
+                if self._write():
+                    return
+            except Exception as e:  # noqa: BLE001 - a full disk must not stop the simulator; the log says so, once
+                if self.error is None:
+                    log.error("keeping episodes failed (retried every %g s until it works):\n%s",
+                              self.retry_seconds, traceback.format_exc())
+                self.error = str(e)
+                self._shed()
+                if None in self._pending and self._closing_given_up():
+                    return
+                continue
+            if self.error is not None:
+                log.warning("keeping episodes works again: everything pending is written")
+                self.error = None
 
-    def _write(self, items: list) -> bool:
-        steps: dict[int, list] = {}
-        for item in items:
+    def _closing_given_up(self) -> bool:
+        """Closing while the record cannot be written: one last try has failed; say what is lost."""
+        steps = sum(1 for item in self._pending if item is not None and item[0] == "step")
+        log.error("closing with %d steps not written to the record (%s)", steps, self.error)
+        for item in self._pending:
+            if item is not None and item[0] == "flush":
+                item[1].set()
+        return True
+
+    def _shed(self) -> None:
+        """Give up the oldest pending steps beyond `max_pending_steps`, counting them against their episode."""
+        steps = [item for item in self._pending if item is not None and item[0] == "step"]
+        drop = {id(item) for item in steps[:max(0, len(steps) - self.max_pending_steps)]}
+        if not drop:
+            return
+        kept = deque()
+        for item in self._pending:
+            if id(item) in drop:
+                episode_id = item[1].id
+                self.cut[episode_id] = self.cut.get(episode_id, 0) + 1
+                self.unwritten[episode_id] -= 1
+            else:
+                kept.append(item)
+        self._pending = kept
+
+    def _write(self) -> bool:
+        """Write the pending items in order, each leaving the pending ones once it is in the record (a failure leaves
+        it and the rest for the next try); True once the close item is reached."""
+        pending = self._pending
+        while pending:
+            item = pending[0]
             if item is None:
-                self._flush_steps(steps)
                 return True
             kind, episode, record = item
             if kind == "flush":
-                self._flush_steps(steps)
+                pending.popleft()
                 episode.set()
             elif kind == "start":
-                self._flush_steps(steps)
                 self._start(episode)
-                if record:
-                    steps.setdefault(episode.id, []).extend(step_row(r) for r in record)
+                pending.popleft()
+                for r in reversed(record):  # a fork's first steps: written as any other steps, next
+                    pending.appendleft(("step", episode, r))
             elif kind == "step":
+                batch = list(itertools.takewhile(
+                    lambda it, e=episode: it is not None and it[0] == "step" and it[1] is e, pending))
                 if episode.id not in self._started:
                     self._start(episode)
-                steps.setdefault(episode.id, []).append(step_row(record))
+                rows = [step_row(it[2]) for it in batch]
+                size = sum(len(r[1]) + len(r[2]) + (len(r[3]) if r[3] is not None else 0) for r in rows)
+                self.db.add_kept_steps(episode.id, rows, size)
+                for _ in batch:
+                    pending.popleft()
+                self.unwritten[episode.id] -= len(batch)
             elif kind == "end":
-                self._flush_steps(steps)
                 self._end(episode)
-        self._flush_steps(steps)
+                pending.popleft()
         return False
 
-    def _flush_steps(self, steps: dict[int, list]) -> None:
-        for episode_id, rows in steps.items():
-            size = sum(len(r[1]) + len(r[2]) + (len(r[3]) if r[3] is not None else 0) for r in rows)
-            self.db.add_kept_steps(episode_id, rows, size)
-        steps.clear()
-
     def _start(self, episode: Episode) -> None:
+        self.db.add_kept(kept_row(episode, self.store.config.world))
         self._started.add(episode.id)
-        world = episode.task.world
-        self.db.add_kept({"id": episode.id, "created": time.time(), "status": episode.status, "env_id": world.env_id,
-                          "split": world.split, "instruction": episode.instruction,
-                          "task": task_json(episode.task, self.store.config.world, episode.typed),
-                          "policy": episode.policy, "system": episode.system, "checkpoint": episode.checkpoint,
-                          "horizon": episode.horizon})
 
     def _end(self, episode: Episode) -> None:
-        if episode.id not in self._started:  # dropped from the queue before it flew: nothing was flown
-            return
-        self._started.discard(episode.id)
         result = episode.result
-        self.db.update_kept(episode.id, status=episode.status, finished=time.time(), error=episode.error,
-                            result=_result_dict(result),
-                            success=None if result is None else int(result.success))
+        error = episode.error
+        if episode.id not in self._started:  # dropped from the queue before it flew: kept, as not flown
+            error = error or "not flown: cancelled before its turn came"
+        cut = self.cut.pop(episode.id, 0)
+        if cut:
+            error = (f"{error}; " if error else "") + (f"{cut} of its steps could not be kept: the record could not "
+                                                       "be written meanwhile (a full disk?)")
+        self.db.update_kept(episode.id, status=episode.status, finished=time.time(), error=error,
+                            result=_result_dict(result), success=None if result is None else int(result.success))
+        self._started.discard(episode.id)
+        if not self.unwritten.get(episode.id):
+            self.unwritten.pop(episode.id, None)
         self.apply_retention()
 
     # -- retention ----------------------------------------------------------------------------------------------------
@@ -374,4 +495,4 @@ def row_summary(row) -> dict[str, Any]:
             "checkpoint": row["checkpoint"], "steps": int(row["steps"]), "horizon": int(row["horizon"]),
             "steps_per_second": None, "result": json.loads(row["result"]) if row["result"] else None,
             "error": row["error"], "pinned": bool(row["pinned"]), "created": float(row["created"]),
-            "bytes": int(row["bytes"])}
+            "bytes": int(row["bytes"]), "kept_steps": int(row["steps"])}

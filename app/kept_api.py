@@ -20,8 +20,12 @@ MAX_TIME = 1e11  # unix seconds, year 5138
 class Storage(BaseModel):
     episodes: int = Field(description="episodes kept in the record")
     pinned: int
-    bytes: int = Field(description="what their steps take (camera JPEGs, quantised maps, numbers)")
-    limit_bytes: int = Field(description="past it the oldest unpinned episodes are removed")
+    bytes: int = Field(description="what their steps take (camera JPEGs, quantised maps, numbers): what the "
+                       "retention limit counts")
+    limit_bytes: int = Field(description="past it (in `bytes`) the oldest unpinned episodes are removed")
+    file_bytes: int = Field(description="the record's files on disk (gsmn.sqlite and its -wal and -shm, evaluations "
+                            "and runs included): above `bytes` by SQLite's pages, rows and write-ahead log, which the "
+                            "limit does not count")
     removed: list[int] = Field(description="episodes the limit removed since the server started, oldest first")
 
 
@@ -62,8 +66,9 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
         for row in rows:
             episode = store.get_in_memory(int(row["id"]))
             if episode is not None and episode.live:  # fresher than the record (its step count)
-                out.append(summary(episode).model_copy(update={"pinned": bool(row["pinned"]),
-                                                              "bytes": int(row["bytes"])}))
+                out.append(summary(episode).model_copy(update={
+                    "pinned": bool(row["pinned"]), "bytes": int(row["bytes"]), "kept_steps": int(row["steps"]),
+                    "keeping": keeper.behind(episode.id)}))
             else:
                 out.append(EpisodeSummary(**row_summary(row)))
         filtered = any(v is not None for v in (env_id, instruction, policy, system, pinned, since, until)) \
@@ -103,7 +108,7 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
         keeper.flush()
         counts = db.kept_counts()
         return Storage(episodes=counts["episodes"], pinned=counts["pinned"], bytes=db.kept_bytes(),
-                       limit_bytes=keeper.limit_bytes, removed=list(keeper.removed))
+                       limit_bytes=keeper.limit_bytes, file_bytes=db.file_bytes(), removed=list(keeper.removed))
 
     @app.get("/api/storage", response_model=Storage, responses=responses(503),
              summary="Space the kept episodes take, and the retention limit")

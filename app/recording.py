@@ -75,6 +75,7 @@ class StepRecord:
     # the P(stop) the flown STOP was decided on when a model flew (a mirror ensemble's: the mean of its two
     # copies, where maps.stop_probability is the unmirrored copy's); None when the expert flew
     stop_probability: float | None = None
+    damaged: str | None = None  # why its maps could not be read back from the record (app.kept); None: they could
 
     @property
     def decisive_stop_probability(self) -> float | None:

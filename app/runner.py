@@ -281,7 +281,12 @@ class Runner(ComparingRunner):
     # -- checkpoints ------------------------------------------------------------------------------------------
     def _path_of(self, ref: str) -> Path:
         """A bare name is a folder under checkpoints_root (unless only ./name is a checkpoint) or an extra
-        checkpoint's name; else a path."""
+        checkpoint's name; else a path, which must lie under checkpoints_root or be one this dashboard was started
+        with or offers (`_offered`): a request cannot point it at any folder of the machine, and the refusal says
+        the same whether the folder exists or not."""
+        if not ref.strip():
+            raise RunnerError("checkpoint is empty: name one (e.g. gsmn, table2/no-ground, run-3), or leave it out "
+                              "for the default")
         extra = self.extra_checkpoints() if self.extra_checkpoints else {}
         try:
             if ref in extra and not (self.checkpoints_root / ref).is_dir():
@@ -293,7 +298,22 @@ class Runner(ComparingRunner):
                 return candidate
         except OSError as e:  # e.g. a name too long for the file system
             raise RunnerError(f"no checkpoint at {ref}: {e.strerror or e}") from e
+        if not self._offered(Path(ref)):
+            raise RunnerError(f"checkpoint {ref!r} is not one this dashboard offers: name a checkpoint under "
+                              f"checkpoints/ (e.g. gsmn, table2/no-ground) or a finished fine-tuning run (run-N)")
         return Path(ref)
+
+    def _offered(self, path: Path) -> bool:
+        """Under checkpoints_root, or the checkpoint the dashboard was started with, or one loaded or offered."""
+        try:
+            resolved = path.resolve()
+            known = {Path(k) for k in self.models} | {p.resolve() for p in (
+                self.extra_checkpoints() if self.extra_checkpoints else {}).values()}
+            if self.default_ref is not None:
+                known.add(Path(self.default_ref).resolve())
+            return resolved.is_relative_to(self.checkpoints_root.resolve()) or resolved in known
+        except (OSError, RuntimeError):
+            return False
 
     def _load_default(self) -> None:
         if self.default_ref is None:

@@ -19,7 +19,9 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from app.commands import MAX_ENV_ID
 
-MAX_ID = 2**63 - 1  # SQLite's INTEGER
+# the largest integer a JSON reader holds exactly (a double's 53 bits): the schema's maximum is then the number the
+# server checks, where 2**63 - 1 (SQLite's INTEGER) read as a double is 2**63, which a schema-valid id could reach
+MAX_ID = 2**53 - 1
 
 
 def _valid_text(value: str) -> str:
@@ -55,7 +57,8 @@ class ValidationError(BaseModel):
     detail: str = Field(description="what was wrong, for people; for invalid fields one part per field")
     errors: list[dict] | None = Field(None, description="for invalid fields, pydantic's errors (type, loc, msg; "
                                       "input when it is plain JSON); absent when the request was well formed but "
-                                      "cannot be done as asked (an unknown word, a file that is not an evaluation)")
+                                      "cannot be done as asked (an instruction not understood, a file that is not an "
+                                      "evaluation)")
 
 
 def responses(*codes: int) -> dict[int, dict]:

@@ -13,10 +13,11 @@ import httpx
 import pytest
 
 from app.commands import SetSpeed
+from app.schema import MAX_ID
 from app.server import Dashboard
 from gsmn.config import preset, with_overrides
 
-BIG = 2**63
+BIG = MAX_ID + 1  # one past the largest id the schema admits (2**53 - 1: exact in every JSON reader)
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +51,14 @@ def test_huge_ids_are_refused_and_the_slot_stays_free(server):
                  f"/api/evaluations/{BIG}/episodes", f"/api/evaluations/1/compare/{BIG}"):
         assert client.get(path).status_code == 422, path
     assert client.get(f"/api/evaluations/{BIG - 1}").status_code == 404
+    assert client.get(f"/api/episodes/{2**63 - 1}").status_code == 422  # SQLite's limit, past the schema's
+    spec = client.get("/openapi.json").json()
+    schemas = [p["schema"] for op in spec["paths"].values() for o in op.values() for p in o.get("parameters", [])
+               if p["name"].endswith("_id") and p["name"] != "env_id"]
+    schemas += [prop for model in spec["components"]["schemas"].values()
+                for name, prop in model.get("properties", {}).items() if name.endswith("_id") and name != "env_id"]
+    bounded = [alt for sch in schemas for alt in sch.get("anyOf", [sch]) if "minimum" in alt]  # the inputs
+    assert len(bounded) > 20 and {alt.get("maximum") for alt in bounded} == {MAX_ID}  # exact in JSON, not 9.2e+18
     for body in ({"system": "oracle", "baseline_id": BIG}, {"system": "oracle", "env_ids": [70], "run_id": BIG}):
         assert client.post("/api/evaluations", json=body).status_code == 422, body
     assert client.post("/api/runs", json={"evaluation_id": BIG}).status_code == 422

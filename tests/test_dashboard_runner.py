@@ -170,7 +170,7 @@ def test_the_page_preempts_and_the_api_queues(runner):
     (StartEpisode(70, "go to the left side of the anvil"), RunnerError, "no anvil in this world"),
     (StartEpisode(70, "go to the pumpkin"), RunnerError, "no side"),
     (StartEpisode(70, None, "helicopter"), RunnerError, "policy"),
-    (StartEpisode(70, None, "model", checkpoint="/nonexistent/ckpt"), RunnerError, "no checkpoint at"),
+    (StartEpisode(70, None, "model", checkpoint="/nonexistent/ckpt"), RunnerError, "not one this dashboard offers"),
     (Ground(999, "go to the left side of the pumpkin"), NotFound, "no episode 999"),
     (ShowEnv(-5), RunnerError, "env_id"),
 ])

@@ -140,7 +140,7 @@ def test_fork_errors_say_what_was_wrong(runner):
         runner.call(ForkEpisode(10_000, 0))
     with pytest.raises(RunnerError, match="step 999 is not recorded"):
         runner.call(ForkEpisode(original.id, 999))
-    with pytest.raises(RunnerError, match="unknown"):
+    with pytest.raises(RunnerError, match="not a landmark: blorp"):
         runner.call(ForkEpisode(original.id, 3, instruction="go to the blorp"))
     live = runner.call(StartEpisode(70, None, "model", paused=True))
     try:

@@ -14,6 +14,7 @@ import pytest
 
 from app.commands import RunnerError
 from app.db import Database, EpisodeRow
+from app.fixtures import make_untrained_checkpoint
 from app.jobs import JobManager, evaluation_system, run_progress
 from app.jobs_panels import (
     compare_html,
@@ -220,6 +221,29 @@ def test_a_checkpoint_of_unknown_kind_is_refused_before_anything_starts(tmp_path
             with pytest.raises(RunnerError, match="names kind 'resnet50'"):
                 launch()
         assert jobs.db.runs() == [] and jobs.db.evaluations() == []
+    finally:
+        jobs.close()
+
+
+def test_expert_data_must_be_a_store_inside_the_data_folder_and_the_refusal_tells_nothing_of_the_outside(tmp_path):
+    """A run cleans and links files in its expert store, so `expert_data` is confined to the data folder; outside
+    it, an existing folder and a missing one are refused in the same words."""
+    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    jobs = JobManager(tmp_path / "data", preset("tiny"), lambda ref: folder)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    try:
+        answers = []
+        for name in ("/etc", str(outside), str(tmp_path / "missing"), "../elsewhere", "", "missing", ".",
+                     str(tmp_path / "data")):
+            with pytest.raises(RunnerError) as refused:
+                jobs.start_run(dataclasses.replace(run_settings("tiny"), expert_data=name))
+            answers.append(str(refused.value).replace(repr(name), "NAME"))
+        assert len(set(answers)) == 1 and "inside the data folder" in answers[0], answers
+        assert jobs.db.runs() == []
+        (tmp_path / "data" / "mine").mkdir()
+        assert jobs._expert_store("mine") == (tmp_path / "data" / "mine").resolve()
+        assert jobs._expert_store(str(tmp_path / "data" / "mine")) == (tmp_path / "data" / "mine").resolve()
     finally:
         jobs.close()
 

@@ -161,6 +161,8 @@ def test_retention_removes_the_oldest_unpinned_and_never_a_pinned_one(tmp_path, 
         storage = c.get("/api/storage").json()
         sizes = {e["id"]: e["bytes"] for e in c.get("/api/episodes").json()}
         assert storage["episodes"] == 4 and storage["bytes"] == sum(sizes.values()) and min(sizes.values()) > 0
+        on_disk = sum(p.stat().st_size for p in (tmp_path / "data").glob("gsmn.sqlite*"))
+        assert storage["bytes"] < storage["file_bytes"] and abs(storage["file_bytes"] - on_disk) < 1e6
         # just under all four: one must go, the oldest unpinned (ids[1]), not the pinned oldest (ids[0])
         after = c.put("/api/storage", json={"limit_mb": (storage["bytes"] - 1) / 1e6}).json()
         assert after["removed"] == [ids[1]] and after["episodes"] == 3
