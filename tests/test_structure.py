@@ -78,3 +78,18 @@ def test_every_third_party_import_is_declared_in_pyproject():
                 if not names & declared:
                     undeclared.setdefault(top, []).append(str(path.relative_to(ROOT)))
     assert undeclared == {}
+
+
+def test_the_repository_stays_lean():
+    """Every clone carries every version of every file: no tracked file over 2 MB outside checkpoints/, and no
+    pickle in checkpoints/ (weights and optimizer state are safetensors; a pickle can run code when loaded)."""
+    tracked = subprocess.run(["git", "ls-files", "-z"], capture_output=True, text=True, check=True, cwd=ROOT)
+    paths = [p for p in tracked.stdout.split("\0") if p and (ROOT / p).is_file()]
+    large = [p for p in paths if not p.startswith("checkpoints/") and (ROOT / p).stat().st_size > 2 * 2**20]
+    assert large == [], f"tracked files over 2 MB outside checkpoints/: {large}"
+    pickles = [p for p in paths if p.startswith("checkpoints/") and p.rsplit(".", 1)[-1] in
+               ("pt", "pth", "pkl", "pickle", "ckpt", "bin")]
+    assert pickles == [], f"pickles in checkpoints/: {pickles}"
+    on_disk = [str(p.relative_to(ROOT)) for p in (ROOT / "checkpoints").rglob("*")
+               if p.suffix in (".pt", ".pth", ".pkl", ".pickle", ".ckpt")]
+    assert on_disk == [], f"pickles in checkpoints/ (not tracked yet): {on_disk}"
