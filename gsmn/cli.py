@@ -283,6 +283,7 @@ INIT_OPTIMIZER_HELP = ("also start Adam from the optimizer state saved in the --
 # -- gsmn train -------------------------------------------------------------------------------------
 def cmd_train_supervised(args: argparse.Namespace) -> int:
     from gsmn.model.runtime import keep_freed_memory
+    from gsmn.training import distributed
     from gsmn.training.store import EpisodeStore
     from gsmn.training.supervised import train_supervised
 
@@ -292,20 +293,23 @@ def cmd_train_supervised(args: argparse.Namespace) -> int:
         path = getattr(args, name)
         if path and not Path(path).is_dir():
             raise FileNotFoundError(f"--{name} {path} does not exist; make it with `gsmn collect --out {path}`")
-    bars = _TrainingBars()
+    bars, clean = _TrainingBars(), False
     try:
         checkpoint = train_supervised(Path(args.run), args.kind, config, EpisodeStore(args.data),
                                       EpisodeStore(args.dev) if args.dev else None,
                                       init=Path(args.init) if args.init else None, log=_above(bars),
                                       on_progress=bars, init_optimizer=args.init_optimizer)
+        clean = True
     finally:
         bars.close()
+        distributed.shutdown(clean)  # under torchrun: leave the process group before exiting
     print(f"checkpoint: {checkpoint}")
     return 0
 
 
 def cmd_train_dagger(args: argparse.Namespace) -> int:
     from gsmn.model.runtime import keep_freed_memory
+    from gsmn.training import distributed
     from gsmn.training.dagger import train_dagger
     from gsmn.training.store import EpisodeStore
 
@@ -320,14 +324,16 @@ def cmd_train_dagger(args: argparse.Namespace) -> int:
         from gsmn.evaluation import parse_env_ids
 
         env_ids = parse_env_ids(args.env_ids)
-    bars = _TrainingBars()
+    bars, clean = _TrainingBars(), False
     try:
         checkpoint = train_dagger(Path(args.run), Path(args.init), config, EpisodeStore(args.data),
                                   EpisodeStore(args.dev) if args.dev else None, env_ids=env_ids, log=_above(bars),
                                   on_progress=bars, init_optimizer=args.init_optimizer,
                                   executor_options=executor.options_from_args(args))
+        clean = True
     finally:
         bars.close()
+        distributed.shutdown(clean)  # under torchrun: leave the process group before exiting
     print(f"checkpoint: {checkpoint}")
     return 0
 

@@ -127,3 +127,14 @@ def agree(flag: bool, world: World, device: torch.device | str = "cpu") -> bool:
 def barrier(world: World) -> None:
     if world.size > 1:
         dist.barrier()
+
+
+def shutdown(clean: bool = True) -> None:
+    """Leave the process group before the process exits: every rank waits for the others (`clean`: the run ended
+    without an error here), then the group is destroyed. A group left to the interpreter's exit is torn down while
+    gloo's threads still run, and a rank that finished first aborts ("terminate called without an active
+    exception", SIGABRT), most often on a loaded machine where the ranks finish apart."""
+    if dist.is_available() and dist.is_initialized():
+        if clean:
+            dist.barrier()
+        dist.destroy_process_group()
