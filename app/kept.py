@@ -237,6 +237,7 @@ class EpisodeKeeper(RunnerListener):
         self._started: set[int] = set()
         self.cut: dict[int, int] = {}  # episode id -> steps given up while the record could not be written
         self.unwritten: dict[int, int] = {}  # episode id -> its steps waiting to be written (read by the API)
+        self._counting = threading.Lock()  # the runner's thread adds to `unwritten`, the writer takes away
         self.error: str | None = None  # why the last write failed, until one succeeds
         self.removed: list[int] = []  # ids removed by the retention limit, oldest first
         self._retention = threading.Lock()  # the writer (after an episode) and the API (a new limit) both apply it
@@ -257,9 +258,10 @@ class EpisodeKeeper(RunnerListener):
                     f"the server stopped while it flew; the {row['steps']} steps written before are kept"))
 
     def behind(self, episode_id: int) -> str | None:
-        """Why some of this episode's steps are not (yet) in the record; None when they all are."""
+        """Why some of this episode's steps are not in the record: they wait while it cannot be written, or were
+        given up; None otherwise (the writer's usual lag of a step or two behind a flight is not a fault)."""
         waiting, cut = self.unwritten.get(episode_id, 0), self.cut.get(episode_id, 0)
-        if not waiting and not cut:
+        if not cut and not (waiting and self.error):
             return None
         parts = ([f"{waiting} steps wait to be written"] if waiting else []) + (
             [f"{cut} steps could not be kept"] if cut else [])
@@ -279,7 +281,8 @@ class EpisodeKeeper(RunnerListener):
         self._queue.put(("end", episode, None))
 
     def _count(self, episode_id: int, n: int) -> None:
-        self.unwritten[episode_id] = self.unwritten.get(episode_id, 0) + n
+        with self._counting:
+            self.unwritten[episode_id] = self.unwritten.get(episode_id, 0) + n
 
     def flush(self, timeout: float = 10.0) -> bool:
         """Wait until everything enqueued so far is written; False if it was not within `timeout`, and at once
@@ -352,7 +355,7 @@ class EpisodeKeeper(RunnerListener):
             if id(item) in drop:
                 episode_id = item[1].id
                 self.cut[episode_id] = self.cut.get(episode_id, 0) + 1
-                self.unwritten[episode_id] -= 1
+                self._count(episode_id, -1)
             else:
                 kept.append(item)
         self._pending = kept
@@ -384,7 +387,7 @@ class EpisodeKeeper(RunnerListener):
                 self.db.add_kept_steps(episode.id, rows, size)
                 for _ in batch:
                     pending.popleft()
-                self.unwritten[episode.id] -= len(batch)
+                self._count(episode.id, -len(batch))
             elif kind == "end":
                 self._end(episode)
                 pending.popleft()
@@ -406,8 +409,9 @@ class EpisodeKeeper(RunnerListener):
         self.db.update_kept(episode.id, status=episode.status, finished=time.time(), error=error,
                             result=_result_dict(result), success=None if result is None else int(result.success))
         self._started.discard(episode.id)
-        if not self.unwritten.get(episode.id):
-            self.unwritten.pop(episode.id, None)
+        with self._counting:
+            if not self.unwritten.get(episode.id):
+                self.unwritten.pop(episode.id, None)
         self.apply_retention()
 
     # -- retention ----------------------------------------------------------------------------------------------------
