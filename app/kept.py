@@ -6,6 +6,9 @@ replayed, pinned and exported later.
   stores the steps waiting for it in one transaction at a time, so the simulator never waits for the disk and a
   server killed mid-episode loses only the steps not yet written (the writer's queue: typically none, at most
   the last few). The next server marks an episode left "running" as failed, with the steps it kept.
+- **Taken when accepted.** An episode's row is written when the runner accepts it (`KeptStore.add`), so its id is
+  the record's at once and a server stopped before it flew keeps it, as not flown. A write that fails later (a full
+  disk) waits and is tried again; nothing says more is kept than the record holds (`EpisodeKeeper`).
 - **Compact.** Per step: the pose, the actions and P(stop) as a small JSON object, the camera image as the JPEG
   the page already sends, and the model's maps quantised to 8 bits per channel (each channel's own minimum and
   maximum kept as float32 beside it, so a value comes back within 1/510 of its channel's range), zlib-compressed.
