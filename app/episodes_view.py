@@ -118,9 +118,9 @@ class EpisodesView(RunnerListener):
             self.share = gui.add_html(link_html(None))
             self.pin_box = gui.add_checkbox("Pinned", False, hint="a pinned episode is never removed by the retention "
                                             "limit")
-            self.export_buttons = gui.add_button_group("Export", ("HTML", "GIF"))
+            self.export_buttons = gui.add_button_group("Export", ("HTML", "GIF", "MP4"))
             self.share_note = gui.add_markdown("The HTML page plays the episode back in any browser, with no server; "
-                                               "the GIF shows the camera beside the maps, for slides.")
+                                               "the GIF and the MP4 show the camera beside the maps, for slides.")
         self.pin_box.on_update(self._on_pin)
         self.export_buttons.on_click(self._on_export)
         with self.viewer.panel.add_tab("Episodes", viser.Icon.LIST):
