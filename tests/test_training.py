@@ -105,6 +105,10 @@ def test_a_run_from_a_checkpoint_can_go_on_with_its_optimizer_state(stores, tmp_
                            log=lambda s: None)
     after = read_optimizer_state(end / "optimizer.safetensors")
     assert {float(v["step"]) for v in after["state"].values()} == {4.0}  # it went on counting
+    saved_bytes = (start / "optimizer.safetensors").read_bytes()
+    (start / "optimizer.safetensors").write_bytes(saved_bytes[:100] + b"\xff" * 64 + saved_bytes[164:])  # damaged
+    with pytest.raises(CheckpointError, match="optimizer.safetensors is unreadable"):
+        train_supervised(tmp_path / "damaged", "gsmn", slower, train, init=start, init_optimizer=True)
     (start / "optimizer.safetensors").unlink()
     with pytest.raises(CheckpointError, match="holds no optimizer state"):
         train_supervised(tmp_path / "refused", "gsmn", slower, train, init=start, init_optimizer=True)
