@@ -47,7 +47,8 @@ class EpisodeRequest(Strict):
                           "85-99 dev)", examples=[70])
     instruction: Text | None = Field(None, max_length=500, description="free text, e.g. 'go to the left side of "
                                      "the barrel'; omitted: the environment's own instruction")
-    checkpoint: Text | None = Field(None, max_length=1000, description="a checkpoint name under checkpoints/ or a "
+    checkpoint: Text | None = Field(
+        None, min_length=1, max_length=1000, description="a checkpoint name under checkpoints/ or a "
                                     "folder; omitted: the default checkpoint")
     policy: Literal["model", "mirror", "expert"] = Field(
         "model", description="who flies: the model; the model as a test-time mirror ensemble (it also flies the "

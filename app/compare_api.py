@@ -22,7 +22,8 @@ EpisodeId = Annotated[int, path_id("episode")]
 
 class PolicySpecModel(Strict):
     policy: Policy = Field("model", description="who flies, as in POST /api/episodes")
-    checkpoint: Text | None = Field(None, max_length=1000, description="a checkpoint name or folder; omitted: the "
+    checkpoint: Text | None = Field(
+        None, min_length=1, max_length=1000, description="a checkpoint name or folder; omitted: the "
                                     "default")
     instruction: Text | None = Field(None, max_length=500, description="this side's own instruction; omitted: the "
                                      "comparison's")
@@ -43,7 +44,8 @@ class ForkRequest(Strict):
     step: int = Field(..., ge=0, le=MAX_STEP, description="the step to fork at: the fork's steps 0..step-1 are the "
                       "original's, and it flies on from the original's exact state at this step")
     instruction: Text | None = Field(None, max_length=500, description="omitted: the original's")
-    checkpoint: Text | None = Field(None, max_length=1000, description="omitted: the original's model")
+    checkpoint: Text | None = Field(
+        None, min_length=1, max_length=1000, description="omitted: the original's model")
     policy: Policy | None = Field(None, description="omitted: the original's")
 
 

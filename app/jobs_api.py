@@ -29,7 +29,8 @@ RunId = Annotated[int, path_id("run")]
 
 
 class EvaluationRequest(Strict):
-    checkpoint: Text | None = Field(None, max_length=1000, description="checkpoint name (under checkpoints/, or "
+    checkpoint: Text | None = Field(
+        None, min_length=1, max_length=1000, description="checkpoint name (under checkpoints/, or "
                                     "run-N for a fine-tuning run) or folder; omitted: the server's default")
     system: SYSTEMS | None = Field(None, description="omitted: the checkpoint's kind; 'oracle' flies the expert")
     split: Literal["train", "test", "dev"] | None = Field(None, description="evaluate on this split ...")
@@ -131,7 +132,8 @@ class RunRequest(Strict):
                                  "(left and right swapped; not in the paper); omitted: the preset's, 0")
     expert_data: Text | None = Field(None, max_length=1000, description="an expert episode store (gsmn collect) "
                                      "to start the dataset from; omitted: collected in the data folder")
-    checkpoint: Text | None = Field(None, max_length=1000, description="start from this checkpoint; omitted: the "
+    checkpoint: Text | None = Field(
+        None, min_length=1, max_length=1000, description="start from this checkpoint; omitted: the "
                                     "server's default")
     env_ids: list[EnvId] | None = Field(None, min_length=1, max_length=5000, description="roll out in these")
     evaluation_id: Id | None = Field(None, description="roll out in this evaluation's failures (when no "
