@@ -131,9 +131,9 @@ def barrier(world: World) -> None:
 
 def shutdown(clean: bool = True) -> None:
     """Leave the process group before the process exits: every rank waits for the others (`clean`: the run ended
-    without an error here), then the group is destroyed. A group left to the interpreter's exit is torn down while
-    gloo's threads still run, and a rank that finished first aborts ("terminate called without an active
-    exception", SIGABRT), most often on a loaded machine where the ranks finish apart."""
+    without an error here), then the group is destroyed, as torch asks of every group. Left to the interpreter's
+    exit, a gloo rank once aborted after its training had finished on a loaded machine ("terminate called without
+    an active exception", SIGABRT: a C++ thread still running at teardown)."""
     if dist.is_available() and dist.is_initialized():
         if clean:
             dist.barrier()
