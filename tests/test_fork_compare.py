@@ -120,16 +120,16 @@ def test_a_fork_with_another_instruction_flies_to_another_landmark(runner):
 
 
 def test_another_checkpoint_rebuilds_its_own_map_along_the_original_path(runner, tmp_path):
-    other = make_untrained_checkpoint(tmp_path / "other", seed=1)
+    make_untrained_checkpoint(runner.checkpoints_root / "other", seed=1)  # offered: a name under checkpoints/
     original = fly(runner, 72, None, "model")
     t = 15
-    fork = runner.call(ForkEpisode(original.id, t, checkpoint=str(other)))
+    fork = runner.call(ForkEpisode(original.id, t, checkpoint="other"))
     wait_done([fork])
     assert fork.status == FINISHED, fork.error
     assert fork.steps[t].position == original.steps[t].position
     assert fork.checkpoint != original.checkpoint
     # its map at step t is the one it builds flying the original's path from the start
-    solo = fly(runner, 72, None, "model", str(other))
+    solo = fly(runner, 72, None, "model", "other")
     assert not np.array_equal(fork.steps[t].maps.semantic_w, original.steps[t].maps.semantic_w)
     assert solo.steps[0].maps.semantic_w.shape == fork.steps[t].maps.semantic_w.shape
 
