@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from support import in_private_mounts
 
 from app.db import RecordError
 from app.jobs import JobManager, new_job_folder
@@ -144,12 +144,7 @@ def test_a_full_disk_fails_the_finished_job_with_the_reason_and_loses_nothing(tm
     root.mkdir()
     fake = fake_eval(tmp_path, wait=True)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    probe = subprocess.run(["unshare", "--mount", "true"], capture_output=True, text=True) \
-        if shutil.which("unshare") else None
-    assert probe is not None and probe.returncode == 0, ("this test needs a private mount namespace for its tmpfs "
-                                                         f"(unshare --mount, as root): {probe and probe.stderr}")
-    command = ["unshare", "--mount", "sh", "-c",
-               f"mount -t tmpfs -o size=3m tmpfs {root} && {sys.executable} {script} {root} {fake}"]
+    command = in_private_mounts(f"mount -t tmpfs -o size=3m tmpfs {root} && {sys.executable} {script} {root} {fake}")
     done = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env, cwd=REPO)
     assert done.returncode == 0, done.stdout + done.stderr
     out = json.loads(done.stdout.strip().splitlines()[-1])

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sqlite3
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from support import in_private_mounts
 from test_kept import Server, finished
 
 from app.fixtures import make_untrained_checkpoint
@@ -175,12 +175,8 @@ def _in_small_tmpfs(tmp_path: Path, script: str, *args: str, size: str = "2m") -
     path.write_text(script)
     root = tmp_path / "small"
     root.mkdir()
-    probe = subprocess.run(["unshare", "--mount", "true"], capture_output=True, text=True) \
-        if shutil.which("unshare") else None
-    assert probe is not None and probe.returncode == 0, ("this test needs a private mount namespace for its tmpfs "
-                                                         f"(unshare --mount, as root): {probe and probe.stderr}")
-    command = ["unshare", "--mount", "sh", "-c",
-               f"mount -t tmpfs -o size={size} tmpfs {root} && {sys.executable} {path} {root} {' '.join(args)}"]
+    command = in_private_mounts(f"mount -t tmpfs -o size={size} tmpfs {root} && {sys.executable} {path} {root} "
+                                f"{' '.join(args)}")
     done = subprocess.run(command, capture_output=True, text=True, timeout=240,
                           env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -236,7 +232,7 @@ def test_a_record_that_cannot_be_started_is_refused_naming_its_file_and_what_to_
     setup = (f"mount -t tmpfs -o size=2m tmpfs {root} && mkdir {root}/ro {root}/full && mount -t tmpfs -o ro,size=1m "
              f"tmpfs {root}/ro && mount -t tmpfs -o size=64k tmpfs {root}/full && "
              f"(head -c 1000000 /dev/urandom > {root}/full/filler; true)")
-    done = subprocess.run(["unshare", "--mount", "sh", "-c", f"{setup} && {sys.executable} {script} {root}"],
+    done = subprocess.run(in_private_mounts(f"{setup} && {sys.executable} {script} {root}"),
                           capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)},
                           cwd=REPO)
     assert done.returncode == 0, done.stdout + done.stderr
