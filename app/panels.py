@@ -125,14 +125,14 @@ def instruction_parts(text: str, world) -> tuple[str | None, str | None]:
     return u.side, u.landmark if u.landmark in names else None
 
 
-def suggestions(text: str, world) -> tuple[str, ...]:
+def suggestions(text: str, world, understood=None) -> tuple[str, ...]:
     """The landmark names of this world to offer under the instruction box: the candidates where several kinds fit
     what is typed ("the tree" with a fir tree and a palm tree), those starting with the word being typed (after
     "of the"), else all of them, sorted."""
     from gsmn.task.instructions import tokenize
     from gsmn.task.understand import understand
 
-    candidates = understand(text or "", world).candidates
+    candidates = (understood or understand(text or "", world)).candidates  # the caller's reading, if it has one
     if candidates:
         return tuple(c.noun_phrase for c in candidates)
     names = sorted({lm.noun_phrase for lm in world.landmarks})

@@ -425,8 +425,8 @@ class Viewer(RunnerListener):
         self.instruction.value = compose_instruction(self.instruction.value, world, side, name)
         self.instruction_note.content = self._instruction_feedback(self.instruction.value)
 
-    def _set_chips(self, text: str, world) -> None:
-        names = suggestions(text, world) if world is not None else ()
+    def _set_chips(self, text: str, world, understood=None) -> None:
+        names = suggestions(text, world, understood) if world is not None else ()
         options = names or ("(none)",)
         if tuple(self.name_chips.options) != options:
             self.name_chips.options = options
@@ -472,14 +472,14 @@ class Viewer(RunnerListener):
         """The note under the instruction box (checked as it is typed), the word chips under it, the Run button's
         colour (green only when it can be flown) and the sides drawn around the landmark named."""
         world = self._typed_world()
-        self._set_chips(text, world)
+        understood = understand(text, world) if world is not None else None  # read once: note and chips
+        self._set_chips(text, world, understood)
         if not text.strip():
             self._can_fly(True, None)
             return "Empty: the environment's own instruction will be flown."
         if world is None:
             self._can_fly(False, None)
             return error_html("**Cannot fly this:** the environment id is not a whole number from 0 up.")
-        understood = understand(text, world)
         instruction = understood.instruction
         if instruction is None:
             self._can_fly(False, None)

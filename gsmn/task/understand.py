@@ -27,7 +27,7 @@ Everything here is a pure function of the text and the WorldSpec; tests/test_und
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 
 from rapidfuzz.distance import OSA
@@ -178,7 +178,7 @@ class Understanding:
     candidates: tuple[Instruction, ...] = ()  # several classes fit ("the tree"): pick one; nothing is flown
     reason: str | None = None  # why it is refused (None when understood)
     suggestions: tuple[str, ...] = ()  # the nearest instructions this world allows, when refused
-    ignored: tuple[str, ...] = field(default=())  # words read as neither side nor landmark
+    ignored: tuple[str, ...] = ()  # words read as neither side nor landmark
     listing: tuple[str, ...] = ()  # the world's landmarks, where the refusal is about a landmark
 
     @property
