@@ -89,9 +89,9 @@ def register_export(subparsers: argparse._SubParsersAction) -> None:
 def cmd_export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from app.db import Database, RecordError
-    from app.export import export_episode, heads_for
-    from app.kept import KeptStore
+    from app.jobs.db import Database, RecordError
+    from app.render.export import export_episode, heads_for
+    from app.jobs.kept import KeptStore
 
     record = Path(args.data_dir) / "gsmn.sqlite"
     if not record.is_file():

@@ -4,7 +4,7 @@ Every browser tab that connects gets its own page (`Tab`: a viewer, its jobs, pr
 on viser's client-level handles) and loses it when it goes; the runner, the jobs and the record are shared.
 
 Both servers bind to loopback by default, and both check every request's Host, Origin and (when there is one)
-token (`app.access`): bound beyond loopback they need a token, printed at start-up in the page's URL. viser moves
+token (`app.api.access`): bound beyond loopback they need a token, printed at start-up in the page's URL. viser moves
 to the next free port silently when its port is taken, so the URLs are read back from the bound sockets; the API
 does the same (and says so). Port 0 picks any free port (the tests use it).
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 import uvicorn
 import viser
 
-from app.access import (
+from app.api.access import (
     Access,
     AccessMiddleware,
     guard_viser,
@@ -35,15 +35,15 @@ from app.access import (
     unguard_viser,
     url,
 )
-from app.api import make_api
-from app.commands import Conflict, RunnerError, ShowEnv
-from app.episodes_view import EpisodesView
-from app.jobs import JobManager
-from app.jobs_view import JobsView
-from app.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
-from app.presenter import Presenter
-from app.runner import Runner
-from app.viewer import Viewer, configure_server
+from app.api.episodes import make_api
+from app.live.commands import Conflict, RunnerError, ShowEnv
+from app.page.episodes_view import EpisodesView
+from app.jobs.manager import JobManager
+from app.page.jobs_view import JobsView
+from app.jobs.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
+from app.page.presenter import Presenter
+from app.live.runner import Runner
+from app.page.viewer import Viewer, configure_server
 from gsmn.config import RunConfig
 
 log = logging.getLogger("gsmn.dashboard")
@@ -127,7 +127,7 @@ class Dashboard:
                  checkpoints_root: str | Path = CHECKPOINTS_ROOT, max_episodes: int = 16, torch_threads: int = 1,
                  data_dir: str | Path = DEFAULT_DATA_DIR, max_runs: int = 1, max_evaluations: int = 1,
                  token: str | None = None, keep_mb: float | None = None):
-        """`keep_mb`: the retention limit of kept episodes (app.kept; None: its default). `token`: the token
+        """`keep_mb`: the retention limit of kept episodes (app.jobs.kept; None: its default). `token`: the token
         requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
         is not loopback)."""
         import torch

@@ -123,8 +123,8 @@ def main() -> int:
 
     from playwright.sync_api import sync_playwright
 
-    from app.commands import Ground, SetSpeed, StartEpisode
-    from app.fixtures import make_untrained_checkpoint
+    from app.live.commands import Ground, SetSpeed, StartEpisode
+    from app.live.fixtures import make_untrained_checkpoint
     from app.server import CHECKPOINTS_ROOT, Dashboard
     from gsmn.config import preset
 
@@ -244,8 +244,8 @@ def main() -> int:
 def compare_and_fork(runner, env_id: int, runs: int) -> dict:
     """Live steps per second of a single episode and of a comparison (timeline steps: one step of each episode),
     alternating, in one run; the snapshots' memory per step; the time a fork takes to fly its first step."""
-    from app.commands import StartEpisode
-    from app.compare import ForkEpisode, PolicySpec, StartComparison
+    from app.live.commands import StartEpisode
+    from app.live.compare import ForkEpisode, PolicySpec, StartComparison
 
     single, pair, pair_total, snapshot_bytes, fork_ms = [], [], [], [], []
     for _ in range(max(runs, 1)):

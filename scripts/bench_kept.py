@@ -1,4 +1,4 @@
-"""What a kept episode costs on disk (app.kept): flies episodes in a throw-away data folder with the dashboard's
+"""What a kept episode costs on disk (app.jobs.kept): flies episodes in a throw-away data folder with the dashboard's
 runner and keeper, and prints the stored bytes per episode and per step (camera JPEG, quantised maps, numbers),
 the growth of the SQLite file, how long the writer took per step, and an export's sizes.
 
@@ -15,11 +15,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.commands import StartEpisode  # noqa: E402
-from app.db import Database  # noqa: E402
-from app.export import export_episode, heads_for  # noqa: E402
-from app.kept import EpisodeKeeper, KeptStore  # noqa: E402
-from app.runner import Runner  # noqa: E402
+from app.live.commands import StartEpisode  # noqa: E402
+from app.jobs.db import Database  # noqa: E402
+from app.render.export import export_episode, heads_for  # noqa: E402
+from app.jobs.kept import EpisodeKeeper, KeptStore  # noqa: E402
+from app.live.runner import Runner  # noqa: E402
 from gsmn.config import preset  # noqa: E402
 
 

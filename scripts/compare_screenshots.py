@@ -58,7 +58,7 @@ def open_tab(page, name: str) -> None:
 def reset_camera(dashboard, look_at: tuple[float, float] | None = None) -> None:
     """Every open page's 3D view back to the dashboard's opening one (a drag or a key may have moved it), or looking
     down at a point from the south-east."""
-    from app.scene import DEFAULT_CAMERA
+    from app.page.scene import DEFAULT_CAMERA
 
     target = DEFAULT_CAMERA["look_at"] if look_at is None else (look_at[0], look_at[1], 0.0)
     position = DEFAULT_CAMERA["position"] if look_at is None else (look_at[0] + 12.0, look_at[1] - 22.0, 22.0)

@@ -52,8 +52,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import playwright.sync_api as playwright_api
 
-    from app.commands import SetSpeed
-    from app.fixtures import make_untrained_checkpoint
+    from app.live.commands import SetSpeed
+    from app.live.fixtures import make_untrained_checkpoint
     from app.server import Dashboard
     from gsmn.config import preset
 
@@ -145,7 +145,7 @@ def shoot_details(page, path: Path, what: str = "") -> None:
 def regions_shot(page, dashboard, results: str, record: str | None, out: Path) -> None:
     """The failure browser on an imported evaluation, filtered to the failures that flew through the success
     region, with the first of them replaying in the live view."""
-    from app.commands import SetSpeed
+    from app.live.commands import SetSpeed
 
     e = dashboard.jobs.import_evaluation(results, record)
     page.set_viewport_size({"width": 1500, "height": 1300})  # the counts under the bars and the details, both

@@ -28,7 +28,7 @@ def main() -> None:
     args = p.parse_args()
     import playwright.sync_api as playwright_api
 
-    from app.commands import StartEpisode
+    from app.live.commands import StartEpisode
     from app.server import Dashboard
     from gsmn.config import preset
 

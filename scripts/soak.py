@@ -108,7 +108,7 @@ def main() -> int:
     folder = Path(tempfile.mkdtemp(prefix="gsmn-soak-"))
     checkpoint = args.checkpoint
     if checkpoint is None:
-        from app.fixtures import make_untrained_checkpoint
+        from app.live.fixtures import make_untrained_checkpoint
 
         checkpoint = str(make_untrained_checkpoint(folder / "checkpoint", args.preset))
     server = subprocess.Popen(

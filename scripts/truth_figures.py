@@ -27,9 +27,9 @@ def main() -> int:
 
     import torch
 
-    from app.commands import StartEpisode
-    from app.runner import Runner
-    from app.truth import step_figures, went_wrong
+    from app.live.commands import StartEpisode
+    from app.live.runner import Runner
+    from app.render.truth import step_figures, went_wrong
     from gsmn.config import preset
 
     torch.set_num_threads(1)

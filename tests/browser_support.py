@@ -14,7 +14,7 @@ import playwright.sync_api as playwright_api
 from support import poll, until  # noqa: F401 - the browser tests wait through this module
 
 from app.browser import CHROMIUM, CHROMIUM_ARGS
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 NO_CHROMIUM = "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
 

@@ -1,4 +1,4 @@
-"""Who may drive the dashboard (`app.access`), on real sockets: a page on another origin can neither open the viser
+"""Who may drive the dashboard (`app.api.access`), on real sockets: a page on another origin can neither open the viser
 WebSocket nor POST to the API, a DNS-rebinding Host is refused by both servers, and off loopback (or with a
 token) every API request and the WebSocket need the token printed at start-up."""
 

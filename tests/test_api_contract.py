@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 

@@ -12,8 +12,8 @@ import time
 import httpx
 import pytest
 
-from app.commands import SetSpeed
-from app.schema import MAX_ID
+from app.live.commands import SetSpeed
+from app.api.schema import MAX_ID
 from app.server import Dashboard
 from gsmn.config import preset, with_overrides
 
@@ -138,7 +138,7 @@ def test_the_episode_queue_is_bounded_and_a_queued_episode_cancels(server):
 
 # -- files refused by name --------------------------------------------------------------------------------------
 def test_an_empty_record_is_refused_by_name_and_not_started_afresh(tmp_path):
-    from app.db import Database, RecordError
+    from app.jobs.db import Database, RecordError
 
     path = tmp_path / "gsmn.sqlite"
     path.write_bytes(b"")
@@ -148,7 +148,7 @@ def test_an_empty_record_is_refused_by_name_and_not_started_afresh(tmp_path):
 
 
 def test_a_damaged_record_is_refused_by_name(tmp_path):
-    from app.db import Database, RecordError
+    from app.jobs.db import Database, RecordError
 
     path = tmp_path / "gsmn.sqlite"
     db = Database(path)
@@ -185,7 +185,7 @@ def test_a_record_error_later_answers_503_naming_the_file(server, monkeypatch):
 def test_a_checkpoint_with_nan_weights_is_refused(tmp_path):
     from safetensors.torch import load_file, save_file
 
-    from app.fixtures import make_untrained_checkpoint
+    from app.live.fixtures import make_untrained_checkpoint
     from gsmn.model.checkpoint import CheckpointError, load_checkpoint
 
     folder = make_untrained_checkpoint(tmp_path / "nan")

@@ -15,7 +15,7 @@ import time
 import httpx
 import pytest
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 HORIZON = 60
 

@@ -1,6 +1,6 @@
 """End to end in headless Chromium: two checkpoints flown side by side and scrubbed step by step with both views
 changing; a fork from step t with another instruction that flies to another landmark; the ground-truth layers
-toggled with their figures shown (app.compare_view).
+toggled with their figures shown (app.page.compare_view).
 
 Needs the `playwright` package and a Chromium, as tests/test_dashboard_browser.py.
 """
@@ -11,7 +11,7 @@ import browser_support
 import pytest
 
 from app.browser import field
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 HORIZON = 40
 

@@ -12,8 +12,8 @@ import pytest
 import torch
 from support import until
 
-from app.colors import decode_image
-from app.commands import (
+from app.render.colors import decode_image
+from app.live.commands import (
     Conflict,
     Ground,
     NotFound,
@@ -25,9 +25,9 @@ from app.commands import (
     StartEpisode,
     StepOnce,
 )
-from app.fixtures import make_untrained_checkpoint
-from app.recording import CANCELLED, FINISHED, PAUSED
-from app.runner import Runner
+from app.live.fixtures import make_untrained_checkpoint
+from app.live.recording import CANCELLED, FINISHED, PAUSED
+from app.live.runner import Runner
 from gsmn.config import preset
 
 

@@ -11,7 +11,7 @@ import re
 import numpy as np
 import pytest
 
-from app.colors import (
+from app.render.colors import (
     UNSEEN_RGB,
     apply_colormap,
     class_palette,
@@ -25,8 +25,8 @@ from app.colors import (
     upscale,
     with_alpha,
 )
-from app.layers import MapHeads, build_layers, inspect_cell
-from app.panels import (
+from app.render.layers import MapHeads, build_layers, inspect_cell
+from app.render.panels import (
     camera_html,
     cell_marks_html,
     inspector_markdown,
@@ -37,8 +37,8 @@ from app.panels import (
     status_line,
     timeline_marks,
 )
-from app.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
-from app.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
+from app.live.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
+from app.page.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from gsmn.config import preset
 from gsmn.model.grid import world_cell
 from gsmn.model.heads import positive_probability
@@ -194,7 +194,7 @@ def test_a_model_without_a_filter_says_so_in_its_panel():
 def test_went_wrong_leaves_out_the_figures_of_untrained_heads():
     """An untrained head's figure is None at every step, which first_failures reads as wrong from step 0: the
     dashboard's "went wrong" must leave it out instead."""
-    from app.truth import went_wrong
+    from app.render.truth import went_wrong
     from gsmn.analysis.truth import Agreement
 
     figures = [Agreement(0.9, None, 0.5, 3), Agreement(0.9, None, 0.5, 3)]
@@ -308,7 +308,7 @@ def test_landmark_labels_do_not_overlap_from_the_first_camera():
 
 
 def _episode_with_steps() -> Episode:
-    from app.recording import StepMaps, StepRecord
+    from app.live.recording import StepMaps, StepRecord
     from gsmn.task.rollout import EpisodeRecord
 
     world = world_for_env(70, preset("tiny").world)
@@ -402,7 +402,7 @@ def test_the_page_text_says_the_result_plainly():
 def test_every_map_of_the_output_record_is_a_layer_and_a_panel():
     """The layers come from the model's output record (GSMNOutputs.maps()): a map the heads do not read, or one
     added to the record later, is a layer and a panel of its own with no change to the dashboard."""
-    from app.layers import LAYERS, map_layers
+    from app.render.layers import LAYERS, map_layers
     from gsmn.model.gsmn import GSMNOutputs
 
     kept = {f.name for f in dataclasses.fields(GSMNOutputs)} & {"coverage_w", "relevance_map_r"}
@@ -427,8 +427,8 @@ def test_the_page_text_a_newcomer_reads():
     """Issue 51, items 5, 6, 7, 9, 12 and 16, as the page's pure text functions say them."""
     from dataclasses import replace
 
-    from app.colors import OTHER_RGB
-    from app.panels import (
+    from app.render.colors import OTHER_RGB
+    from app.render.panels import (
         actions_data,
         compose_instruction,
         marks_clash,
@@ -505,7 +505,7 @@ def test_the_page_text_a_newcomer_reads():
 def test_the_first_view_shows_every_start_corner_and_the_drone():
     """Item 4 of issue 51: from the first camera, the whole field (every start corner, where the drone begins, with
     its frustum up to 3 m) lies inside a canvas 0.64 as wide as it is high (1280 x 800 between the side panels)."""
-    from app.scene import LABEL_PX
+    from app.page.scene import LABEL_PX
 
     half_height = LABEL_PX["viewport"] / 2
     for x in (-1.0, 31.0):
@@ -521,7 +521,7 @@ def test_the_ground_surfaces_are_farther_apart_than_the_depth_buffer_resolves():
     view's near plane at CAMERA_NEAR, a 24-bit depth buffer resolves z^2 / (near 2^24) at distance z: far below
     the closest pair of surfaces (the field's top at -1 mm and the grid at +2 mm) from 60 m, where viser's own near
     plane (0.01 m) resolved 21 mm."""
-    from app.scene import (
+    from app.page.scene import (
         CAMERA_FAR,
         CAMERA_NEAR,
         LAYER_HEIGHTS,
@@ -544,7 +544,7 @@ def test_principal_components_colour_like_features_alike_and_keep_their_colours(
     """Without a perception head the semantic map is drawn by its features' principal components: cells holding
     the same landmark's features share a colour, two landmarks differ, and a step that adds a little to the map
     (or shifts it) keeps the colours."""
-    from app.colors import channels_rgb, principal_components
+    from app.render.colors import channels_rgb, principal_components
 
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=32), rng.normal(size=32)

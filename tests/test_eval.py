@@ -156,7 +156,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "oracle", "--env-ids", "70,71,72", "--json",
                     str(oracle), "--preset", "tiny", "--progress", str(progress)], check=True, capture_output=True)
     # the progress lines (what the dashboard reads) carry the steps inside the success region, without trajectories
-    from app.results import region_steps_of
+    from app.jobs.results import region_steps_of
 
     lines = [json.loads(x) for x in progress.read_text().splitlines()]
     records = {e["env_id"]: e for e in json.loads(oracle.read_text())["episodes"]}
@@ -293,7 +293,7 @@ def test_each_shipped_checkpoint_flies_as_its_own_system(system):
 def test_stop_threshold_analysis_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path):
     """`gsmn analyze stop-threshold`: at 0.5 it reproduces the recorded outcomes; at a lower threshold each episode
     stops at the first step whose recorded P(stop) is above it, and is scored there; ensembles are refused."""
-    from app.fixtures import make_untrained_checkpoint
+    from app.live.fixtures import make_untrained_checkpoint
     from gsmn.attribution import load_trace, trace_path
     from gsmn.config import with_overrides
     from gsmn.task.metrics import success

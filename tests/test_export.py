@@ -1,4 +1,4 @@
-"""Exports of a kept episode (app.export): the self-contained HTML page opened from disk in headless Chromium with
+"""Exports of a kept episode (app.render.export): the self-contained HTML page opened from disk in headless Chromium with
 no server running plays the episode (its camera and maps step with the slider); the GIF has one frame per step;
 from the API and from `gsmn export` on the data folder after the server has stopped."""
 
@@ -14,7 +14,7 @@ import httpx
 import pytest
 from PIL import Image
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ import browser_support
 import pytest
 
 from app.browser import field
-from app.jobs_panels import stage_title
-from app.panels import region_text, steps_in_region
+from app.render.jobs_panels import stage_title
+from app.render.panels import region_text, steps_in_region
 from gsmn.attribution import PIPELINE, reported_stages
 
 HORIZON = 40

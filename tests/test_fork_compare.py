@@ -13,11 +13,11 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
-from app.commands import Conflict, NotFound, RunnerError, StartEpisode
-from app.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
-from app.fixtures import make_untrained_checkpoint
-from app.recording import FINISHED
-from app.runner import Runner
+from app.live.commands import Conflict, NotFound, RunnerError, StartEpisode
+from app.live.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
+from app.live.fixtures import make_untrained_checkpoint
+from app.live.recording import FINISHED
+from app.live.runner import Runner
 from gsmn.config import preset, with_overrides
 from gsmn.task.instructions import parse_instruction
 
@@ -150,7 +150,7 @@ def test_fork_errors_say_what_was_wrong(runner):
         with pytest.raises(Conflict, match="fork it once it has ended"):
             runner.call(ForkEpisode(live.id, 0))
     finally:
-        from app.commands import CancelEpisode
+        from app.live.commands import CancelEpisode
 
         runner.call(CancelEpisode(live.id))
         wait_done([live])
@@ -189,7 +189,7 @@ def test_diverged_at():
 
 
 def test_the_http_routes(runner):
-    from app.api import make_api
+    from app.api.episodes import make_api
 
     client = TestClient(make_api(runner))
     body = {"env_id": 74, "policies": [{"policy": "expert"}, {"policy": "model"}]}
@@ -220,8 +220,8 @@ def test_the_http_routes(runner):
 
 
 def test_truth_layers_and_figures_are_served(runner):
-    from app.api import make_api
-    from app.colors import decode_image
+    from app.api.episodes import make_api
+    from app.render.colors import decode_image
 
     client = TestClient(make_api(runner))
     episode = fly(runner, 75, None, "expert")  # the model watches
@@ -247,8 +247,8 @@ def test_truth_layers_and_figures_are_served(runner):
 def test_forks_and_comparisons_are_kept_in_the_record_with_every_step(tmp_path):
     """A fork starts with the original's steps 0..t-1, never flown again: the record keeps them too, so the kept
     fork has all its steps; both episodes of a comparison are kept."""
-    from app.db import Database
-    from app.kept import EpisodeKeeper, KeptStore
+    from app.jobs.db import Database
+    from app.jobs.kept import EpisodeKeeper, KeptStore
 
     torch.set_num_threads(1)
     folder = make_untrained_checkpoint(tmp_path / "gsmn")

@@ -20,8 +20,8 @@ import httpx
 import pytest
 from support import in_private_mounts
 
-from app.db import RecordError
-from app.jobs import JobManager, new_job_folder
+from app.jobs.db import RecordError
+from app.jobs.manager import JobManager, new_job_folder
 from gsmn.config import preset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -94,8 +94,8 @@ def test_a_result_the_record_cannot_hold_fails_the_job_and_frees_its_slot(tmp_pa
 DISK_FULL = """\
 import json, os, sys, time
 from pathlib import Path
-from app.db import RecordError
-from app.jobs import JobManager
+from app.jobs.db import RecordError
+from app.jobs.manager import JobManager
 from gsmn.config import preset
 
 root, fake = Path(sys.argv[1]), sys.argv[2]

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from support import poll
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 from gsmn.attribution import BEARINGS, STAGES
 
 HORIZON = 40
@@ -247,7 +247,7 @@ def test_a_tiny_run_on_the_failures_finishes_with_a_checkpoint_that_loads(serve,
     assert fractions == sorted(fractions) and done["progress"]["fraction"] == 1.0
     assert [m["iteration"] for m in done["metrics"]] == [1, 2] and "loss" in done["metrics"][0]["train"]
     # validated on the dev split's expert episodes after every iteration: the Fine-tune tab's Figure 4 curves
-    from app.jobs_panels import ACCURACY_CURVES, accuracy_data
+    from app.render.jobs_panels import ACCURACY_CURVES, accuracy_data
 
     assert all(0 <= m["dev"]["acc_perception"] <= 1 and 0 <= m["dev"]["acc_instruction_side"] <= 1
                for m in done["metrics"])

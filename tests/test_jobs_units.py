@@ -12,11 +12,11 @@ import sqlite3
 import numpy as np
 import pytest
 
-from app.commands import RunnerError
-from app.db import Database, EpisodeRow
-from app.fixtures import make_untrained_checkpoint
-from app.jobs import JobManager, evaluation_system, run_progress
-from app.jobs_panels import (
+from app.live.commands import RunnerError
+from app.jobs.db import Database, EpisodeRow
+from app.live.fixtures import make_untrained_checkpoint
+from app.jobs.manager import JobManager, evaluation_system, run_progress
+from app.render.jobs_panels import (
     compare_html,
     curve_data,
     curve_scales,
@@ -27,9 +27,9 @@ from app.jobs_panels import (
     run_resume_hint,
     summary_html,
 )
-from app.results import region_steps_of, region_stop_p_of, summarize_rows
-from app.run_settings import RUN_PRESETS, run_config, run_settings
-from app.supervisor import pid_runs
+from app.jobs.results import region_steps_of, region_stop_p_of, summarize_rows
+from app.jobs.settings import RUN_PRESETS, run_config, run_settings
+from app.jobs.supervisor import pid_runs
 from gsmn.attribution import STAGE_COLOURS
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
@@ -82,9 +82,9 @@ def test_the_record_keeps_evaluations_episodes_and_runs_across_reopening(tmp_pat
 
 def old_schema(version: int) -> str:
     """The schema a record of an earlier version was written with: today's without the columns added since."""
-    import app.db
+    import app.jobs.db
 
-    schema = app.db.SCHEMA
+    schema = app.jobs.db.SCHEMA
     region = [x for x in schema.splitlines() if x.strip().startswith(("region_steps", "region_stop_p"))]
     assert len(region) == 2
     for line in region:
@@ -102,7 +102,7 @@ def old_schema(version: int) -> str:
 def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows(tmp_path):
     """A record written before evaluations had `mirror_ensemble` (schema 1) opens with every row as it was, marked
     as flown plainly, and takes mirror-ensemble evaluations from then on."""
-    import app.db
+    import app.jobs.db
 
     path = tmp_path / "old.sqlite"
     with sqlite3.connect(path) as old:
@@ -118,7 +118,7 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     db.close()
     db = Database(path)
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.db.SCHEMA_VERSION == 4
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.jobs.db.SCHEMA_VERSION == 4
     db.close()
 
 
@@ -315,7 +315,7 @@ def test_summaries_of_recorded_outcomes_match_the_papers_metrics():
 
 
 def test_a_run_folder_says_where_the_run_is(tmp_path):
-    from app.db import Run
+    from app.jobs.db import Run
 
     row = Run(id=1, status="running", created=0, started=0, finished=None, settings={"iterations": 4}, env_ids=None,
               source_evaluation_id=None, init_checkpoint="/c", folder=str(tmp_path), pid=None, command=None,
@@ -369,7 +369,7 @@ def test_the_pages_text():
     assert error_summary("its process exited with status 1; its output ends:\nTraceback\n  File x\nValueError: bad") \
         == "its process exited with status 1: ValueError: bad"
     assert error_summary(None) == "" and error_summary("cancelled") == "cancelled"
-    from app.db import Evaluation
+    from app.jobs.db import Evaluation
 
     ev = Evaluation(id=2, status="finished", created=0, started=0, finished=0, system="gsmn", checkpoint="/c",
                     env_ids=[1, 2], label="x", baseline_id=None, run_id=None, source="dashboard", folder=None,
@@ -414,8 +414,8 @@ def test_the_failure_browser_and_fine_tune_tab_read_plainly():
     """Issue 51, items 10, 17 and 18: successes and failures told apart, sorting, the stage filter named as the bars
     are, a failure whose attribution and region passage differ saying why, and before/after saying which episodes
     were trained on."""
-    from app.db import Run
-    from app.jobs_panels import both_readings, episode_colour, sort_rows, stage_title, trained_on_note
+    from app.jobs.db import Run
+    from app.render.jobs_panels import both_readings, episode_colour, sort_rows, stage_title, trained_on_note
 
     ok = episode(1, 0, 70, success=True, goal_distance=1.0, stage=None, attribution=None)
     far = episode(1, 1, 71, goal_distance=17.9, stage="goal_or_control")

@@ -1,4 +1,4 @@
-"""Episodes kept in the record (app.kept): a real `gsmn serve` process flies, is killed with SIGKILL (after an
+"""Episodes kept in the record (app.jobs.kept): a real `gsmn serve` process flies, is killed with SIGKILL (after an
 episode and in the middle of one) and restarted on the same data folder, and every episode is still listed with
 its steps, camera images and maps; the retention limit removes the oldest unpinned episode and never a pinned
 one. Plus the quantisation's accuracy and an older record's migration."""
@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 HORIZON = 40
 
@@ -188,7 +188,7 @@ def test_retention_removes_the_oldest_unpinned_and_never_a_pinned_one(tmp_path, 
 
 
 def test_maps_come_back_within_their_quantisation_step():
-    from app.kept import pack_maps, unpack_maps
+    from app.jobs.kept import pack_maps, unpack_maps
 
     rng = np.random.default_rng(0)
     maps = {"semantic_map_w": rng.normal(size=(32, 16, 16)).astype(np.float16),
@@ -205,7 +205,7 @@ def test_maps_come_back_within_their_quantisation_step():
 
 
 def test_an_older_record_gains_the_tables_and_keeps_its_rows(tmp_path):
-    from app.db import SCHEMA_VERSION, Database
+    from app.jobs.db import SCHEMA_VERSION, Database
 
     path = tmp_path / "gsmn.sqlite"
     db = Database(path)
@@ -224,8 +224,8 @@ def test_an_older_record_gains_the_tables_and_keeps_its_rows(tmp_path):
 def test_search_filters_on_hand_made_rows(tmp_path):
     import json
 
-    from app.db import Database
-    from app.kept import search
+    from app.jobs.db import Database
+    from app.jobs.kept import search
 
     db = Database(tmp_path / "gsmn.sqlite")
     task = json.dumps({"instruction": {"noun_phrase": "box", "side": "left", "goal_x": 1.0, "goal_y": 2.0}})

@@ -12,7 +12,7 @@ import browser_support
 import pytest
 
 from app.browser import field
-from app.commands import StartEpisode
+from app.live.commands import StartEpisode
 
 
 @pytest.fixture(scope="module")

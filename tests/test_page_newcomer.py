@@ -66,10 +66,10 @@ def type_instruction(page, text: str) -> None:
 
 
 def screen_point(point, width: float, height: float) -> tuple[float, float]:
-    """Where the 3D view's first camera (app.scene.DEFAULT_CAMERA) shows a world point, in canvas pixels."""
+    """Where the 3D view's first camera (app.page.scene.DEFAULT_CAMERA) shows a world point, in canvas pixels."""
     import math
 
-    from app.scene import DEFAULT_CAMERA
+    from app.page.scene import DEFAULT_CAMERA
 
     eye, target, up = (np.asarray(DEFAULT_CAMERA[k], float) for k in ("position", "look_at", "up"))
     forward = (target - eye) / np.linalg.norm(target - eye)
@@ -84,7 +84,7 @@ def screen_point(point, width: float, height: float) -> tuple[float, float]:
 def cursor_column(page) -> float:
     """The x (in the plot's canvas pixels) of the Actions plot's near-black cursor line."""
     png = page.locator(".uplot canvas").first.screenshot()
-    from app.colors import decode_image
+    from app.render.colors import decode_image
 
     rgb = decode_image(png).astype(int)
     dark = (rgb.max(-1) < 70)  # the cursor #222; axes and text are grey or thin
@@ -94,7 +94,7 @@ def cursor_column(page) -> float:
 
 
 def test_a_newcomer_walks_the_page(dashboard, page):
-    from app.scene import SIDE_TURN, _has
+    from app.page.scene import SIDE_TURN, _has
 
     viewer = dashboard.viewer
     show(page, dashboard, ENV)

@@ -1,4 +1,4 @@
-"""The record of kept episodes under faults (app/kept.py, app/db.py): a full disk loses no episode (what could not be
+"""The record of kept episodes under faults (app/jobs/kept.py, app/jobs/db.py): a full disk loses no episode (what could not be
 written waits and goes in once there is room, and the API says what the record holds meanwhile), ids are taken from
 the record when an episode is accepted and never given twice across a kill -9, a queued episode outlives the kill as
 not flown, and a step whose stored maps were damaged leaves the rest of its episode readable."""
@@ -16,7 +16,7 @@ import pytest
 from support import in_private_mounts
 from test_kept import Server, finished
 
-from app.fixtures import make_untrained_checkpoint
+from app.live.fixtures import make_untrained_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -100,9 +100,9 @@ FULL_DISK = """\
 import json, os, sys, time
 from pathlib import Path
 import numpy as np
-from app.db import Database, RecordError
-from app.kept import EpisodeKeeper, KeptStore
-from app.recording import FINISHED, Episode, EpisodeResult, StepRecord
+from app.jobs.db import Database, RecordError
+from app.jobs.kept import EpisodeKeeper, KeptStore
+from app.live.recording import FINISHED, Episode, EpisodeResult, StepRecord
 from gsmn.config import preset
 from gsmn.task.rollout import task_for_env
 
@@ -208,7 +208,7 @@ def test_past_its_bound_a_full_disk_gives_up_the_oldest_steps_and_says_how_many(
 START = """\
 import json, os, sys
 from pathlib import Path
-from app.db import Database, RecordError
+from app.jobs.db import Database, RecordError
 
 root = Path(sys.argv[1])
 out = {}

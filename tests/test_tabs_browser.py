@@ -15,8 +15,8 @@ import pytest
 from browser_support import until
 
 from app.browser import field
-from app.commands import SetSpeed, StartEpisode
-from app.viewer import speed_choice
+from app.live.commands import SetSpeed, StartEpisode
+from app.page.viewer import speed_choice
 
 
 @pytest.fixture(scope="module")

@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 
-from app.colors import data_uri, png_bytes
-from app.commands import MAX_ENV_ID, Grounding
-from app.layers import CellReport, Layer
-from app.recording import FINISHED, Episode, StepRecord
+from app.render.colors import data_uri, png_bytes
+from app.live.commands import MAX_ENV_ID, Grounding
+from app.render.layers import CellReport, Layer
+from app.live.recording import FINISHED, Episode, StepRecord
 from gsmn.task.metrics import steps_in_success_region
 
 PIXELATED = "width:100%;image-rendering:pixelated;display:block"
@@ -368,7 +368,7 @@ def camera_html(jpeg: bytes) -> str:
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
               cell_of) -> str:
-    """The map panels of one step, one per layer (`app.layers.map_layers`: semantic, relevance and goal north-up,
+    """The map panels of one step, one per layer (`app.render.layers.map_layers`: semantic, relevance and goal north-up,
     the robot-frame goal map, then the record's other maps), each with its legend. The drone's cell is outlined in
     white and the goal's in red on the world maps."""
     attrs = (f'class="gsmn-maps" data-episode="{episode.id}" data-step="{t}" '

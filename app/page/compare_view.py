@@ -1,4 +1,4 @@
-"""The page's comparisons, forks and ground truth (`app.compare`, `app.truth`), beside the live view of `app.viewer`.
+"""The page's comparisons, forks and ground truth (`app.live.compare`, `app.render.truth`), beside the live view of `app.page.viewer`.
 
 - **Compare and fork** (a folder of the controls): *Compare with* another policy (and optionally its own
   instruction) and **Run both**: the two fly the shown environment together; **Fork here** flies on from the step
@@ -7,8 +7,8 @@
   comparison's second episode, or the fork's original) is drawn in the scene in magenta, its drone, camera frustum
   and path, at the same step as the timeline (one slider scrubs both); a fork's own path starts at its fork point.
   The *Comparison* tab shows its camera image and map panels at that step, both results side by side, which one
-  succeeded, and the step at which they part (`app.compare.diverged_at`), also marked in the scene by a ring.
-- **Ground truth**: *Truth beside the maps* adds the three truth layers (`app.truth`) under the model's map panels
+  succeeded, and the step at which they part (`app.live.compare.diverged_at`), also marked in the scene by a ring.
+- **Ground truth**: *Truth beside the maps* adds the three truth layers (`app.render.truth`) under the model's map panels
   with the step's agreement figures; the *Actions* tab plots the figures over the episode beside P(stop).
 """
 
@@ -20,13 +20,13 @@ import html
 import numpy as np
 import viser
 
-from app.colors import data_uri, png_bytes
-from app.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
-from app.layers import map_layers
-from app.panels import PIXELATED, maps_html
-from app.recording import Episode
-from app.scene import R_to_wxyz, _segments, yaw_wxyz
-from app.truth import TRUTH_LAYERS, TRUTH_TITLES, episode_truth, step_figures, truth_rgb, went_wrong, went_wrong_text
+from app.render.colors import data_uri, png_bytes
+from app.live.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
+from app.render.layers import map_layers
+from app.render.panels import PIXELATED, maps_html
+from app.live.recording import Episode
+from app.page.scene import R_to_wxyz, _segments, yaw_wxyz
+from app.render.truth import TRUTH_LAYERS, TRUTH_TITLES, episode_truth, step_figures, truth_rgb, went_wrong, went_wrong_text
 
 PARTNER_RGB = (200, 40, 200)
 AS_ORIGINAL = "As the original"
@@ -73,7 +73,7 @@ class CompareView:
                                                "the map panels, with how well each map agrees")
         self.compare_button.on_click(lambda _: self._compare())
         self.fork_button.on_click(lambda _: self._fork())
-        from app.viewer_events import OptionsChanged
+        from app.page.events import OptionsChanged
 
         self.truth_box.on_update(lambda _: v._events.put(OptionsChanged()))
 
@@ -96,7 +96,7 @@ class CompareView:
 
     # -- callbacks --------------------------------------------------------------------------------------------
     def _compare(self) -> None:
-        from app.viewer import StartAnswered
+        from app.page.viewer import StartAnswered
 
         v = self.viewer
         policy, checkpoint = v._policy_of_choice()
@@ -113,7 +113,7 @@ class CompareView:
         v._post(StartComparison(env_id, text, specs, preempt=True), StartAnswered)
 
     def _fork(self) -> None:
-        from app.viewer import StartAnswered
+        from app.page.viewer import StartAnswered
 
         v = self.viewer
         episode = v.view.episode

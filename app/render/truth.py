@@ -17,9 +17,9 @@ import threading
 
 import numpy as np
 
-from app.colors import UNSEEN_RGB, apply_colormap
-from app.layers import MapHeads
-from app.recording import Episode
+from app.render.colors import UNSEEN_RGB, apply_colormap
+from app.render.layers import MapHeads
+from app.live.recording import Episode
 from gsmn.analysis.truth import Agreement, TruthMaps, agreement, first_failures, truth_maps
 
 TRUTH_LAYERS = ("truth_semantic", "truth_relevance", "truth_goal")

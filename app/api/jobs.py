@@ -1,7 +1,7 @@
 """HTTP routes for evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
-(`app.jobs`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
+(`app.jobs.manager`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
 unknown ids, 409 when a limit is reached or there is nothing to cancel or resume, 413 for a file too large to
-import, 422 for bad input, 503 when the record cannot be written (`app.schema` says what every input may be)."""
+import, 422 for bad input, 503 when the record cannot be written (`app.api.schema` says what every input may be)."""
 
 from __future__ import annotations
 
@@ -11,12 +11,12 @@ from typing import Annotated, Literal
 from fastapi import FastAPI, Query
 from pydantic import BaseModel, Field
 
-from app.commands import NotFound, RunnerError, StartEpisode
-from app.db import EpisodeRow, Evaluation, Run
-from app.jobs import CORES, MAX_IMPORT_BYTES, JobManager
-from app.run_settings import MAX_ROLLOUTS, run_settings
-from app.runner import Runner
-from app.schema import EnvId, Id, Strict, Text, path_id, responses
+from app.live.commands import NotFound, RunnerError, StartEpisode
+from app.jobs.db import EpisodeRow, Evaluation, Run
+from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
+from app.jobs.settings import MAX_ROLLOUTS, run_settings
+from app.live.runner import Runner
+from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from gsmn.attribution import STAGES
 
 COMMAND_TIMEOUT = 60.0

@@ -1,4 +1,4 @@
-"""What the browser page's UI thread is told (`app.viewer`): one small frozen record per kind of event, put on its
+"""What the browser page's UI thread is told (`app.page.viewer`): one small frozen record per kind of event, put on its
 queue by the runner's thread (what the simulator did), viser's callbacks (what a person did) and command answers,
 and dispatched by type."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 from concurrent.futures import Future
 from dataclasses import dataclass
 
-from app.commands import Grounding, WorldShown
-from app.recording import Episode
+from app.live.commands import Grounding, WorldShown
+from app.live.recording import Episode
 
 
 class Event:

@@ -17,7 +17,7 @@ from typing import Annotated, Any
 from fastapi import Path
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
-from app.commands import MAX_ENV_ID
+from app.live.commands import MAX_ENV_ID
 
 # the largest integer a JSON reader holds exactly (a double's 53 bits): the schema's maximum is then the number the
 # server checks, where 2**63 - 1 (SQLite's INTEGER) read as a double is 2**63, which a schema-valid id could reach
@@ -71,7 +71,7 @@ def responses(*codes: int) -> dict[int, dict]:
     return {c: {"model": ValidationError if c == 422 else Error, "description": text[c]} for c in codes}
 
 
-ACCESS = (401, 403, 421)  # app.access, on every route
+ACCESS = (401, 403, 421)  # app.api.access, on every route
 
 
 def plain_errors(errors: list) -> list:

@@ -29,15 +29,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app.commands import Command, Conflict, NotFound, RunnerError
-from app.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
+from app.live.commands import Command, Conflict, NotFound, RunnerError
+from app.live.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
 from gsmn.task.fork import FlightSnapshots, Prefix
 from gsmn.task.instructions import InstructionError, parse_instruction
 from gsmn.task.rollout import Task, rollout_steps
 
 if TYPE_CHECKING:
-    from app.runner import Flight
+    from app.live.runner import Flight
 
 log = logging.getLogger("gsmn.dashboard")
 PART_DISTANCE = 1.0  # m: two drones further apart than this have parted
@@ -123,7 +123,7 @@ def diverged_at(pos_a, stop_a, live_a: bool, pos_b, stop_b, live_b: bool,
 
 # -- the runner's part ----------------------------------------------------------------------------------------
 class ComparingRunner:
-    """The commands and the paired flight of `app.runner.Runner` for comparisons and forks (a mixin: the runner
+    """The commands and the paired flight of `app.live.runner.Runner` for comparisons and forks (a mixin: the runner
     thread calls these like its own `_do_*` handlers)."""
 
     comparisons: OrderedDict[int, Comparison]
@@ -165,7 +165,7 @@ class ComparingRunner:
         return comparison
 
     def _do_ForkEpisode(self, c: ForkEpisode) -> Episode:
-        from app.runner import POLICIES, _straight_task
+        from app.live.runner import POLICIES, _straight_task
 
         original = self.episodes.get(c.episode_id)
         if original is None:
@@ -227,7 +227,7 @@ class ComparingRunner:
 
     # -- flying a pair ----------------------------------------------------------------------------------------
     def _fly_pair(self, comparison: Comparison) -> None:
-        from app.runner import _Unwind
+        from app.live.runner import _Unwind
 
         flights: list[Flight] = [self._flight(e) for e in comparison.episodes]
         radius = self.config.task.success_radius

@@ -1,4 +1,4 @@
-"""Every episode flown in the page or over the API, kept in the SQLite record (`app.db`, tables kept_episodes and
+"""Every episode flown in the page or over the API, kept in the SQLite record (`app.jobs.db`, tables kept_episodes and
 kept_steps) as it flies, so that it outlives the server, a `kill -9` included, and can be listed, searched,
 replayed, pinned and exported later.
 
@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from app.commands import RunnerListener
-from app.db import Database
-from app.recording import (
+from app.live.commands import RunnerListener
+from app.jobs.db import Database
+from app.live.recording import (
     CANCELLED,
     FAILED,
     FINISHED,
@@ -272,7 +272,7 @@ class EpisodeKeeper(RunnerListener):
 
     # -- the runner's thread: only enqueue --------------------------------------------------------------------------
     def on_episode_start(self, episode: Episode) -> None:
-        # the steps it starts with: a fork's steps 0..t-1 are the original's (app.compare), never told one by one
+        # the steps it starts with: a fork's steps 0..t-1 are the original's (app.live.compare), never told one by one
         self._count(episode.id, len(episode.steps))
         self._queue.put(("start", episode, tuple(episode.steps)))
 
@@ -492,7 +492,7 @@ def search(db: Database, env_id: int | None = None, instruction: str | None = No
 
 
 def row_summary(row) -> dict[str, Any]:
-    """A kept row as the API's episode summary fields (app.api.EpisodeSummary)."""
+    """A kept row as the API's episode summary fields (app.api.episodes.EpisodeSummary)."""
     task = json.loads(row["task"])
     i = task["instruction"]
     return {"id": int(row["id"]), "status": row["status"], "env_id": int(row["env_id"]), "split": row["split"],

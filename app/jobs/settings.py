@@ -7,7 +7,7 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass, fields, replace
 
-from app.commands import RunnerError
+from app.live.commands import RunnerError
 from gsmn.config import ConfigError, RunConfig
 
 

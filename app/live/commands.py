@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.recording import Episode, StepRecord
+from app.live.recording import Episode, StepRecord
 from gsmn.task.instructions import Instruction
 from gsmn.task.rollout import Task
 from gsmn.world.spec import WorldSpec
@@ -49,7 +49,7 @@ class TooLarge(RunnerError):
 @dataclass
 class Command:
     future: Future = field(default_factory=Future, init=False, repr=False)
-    # who posted it: a browser tab's id (`app.viewer.Viewer.origin`), None for the HTTP API; the episodes and
+    # who posted it: a browser tab's id (`app.page.viewer.Viewer.origin`), None for the HTTP API; the episodes and
     # worlds it makes carry it, so each tab knows its own from those started elsewhere
     origin: str | None = field(default=None, kw_only=True)
 

@@ -1,4 +1,4 @@
-"""The HTTP routes of comparisons and forks (`app.compare`): `POST /api/comparisons`, `GET /api/comparisons`,
+"""The HTTP routes of comparisons and forks (`app.live.compare`): `POST /api/comparisons`, `GET /api/comparisons`,
 `GET /api/comparisons/{id}`, `POST /api/episodes/{id}/fork`."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from typing import Annotated, Literal
 from fastapi import FastAPI
 from pydantic import BaseModel, Field
 
-from app.api import EpisodeCreated, EpisodeSummary, summary
-from app.commands import NotFound
-from app.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
-from app.schema import EnvId, Strict, Text, path_id, responses
+from app.api.episodes import EpisodeCreated, EpisodeSummary, summary
+from app.live.commands import NotFound
+from app.live.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
+from app.api.schema import EnvId, Strict, Text, path_id, responses
 
 COMMAND_TIMEOUT = 60.0
 MAX_STEP = 100_000

@@ -1,4 +1,4 @@
-"""What the page's "Failures" and "Fine-tune" tabs say, as pure functions of the recorded jobs (`app.db`): an
+"""What the page's "Failures" and "Fine-tune" tabs say, as pure functions of the recorded jobs (`app.jobs.db`): an
 evaluation's label, summary and attribution bars, an episode's card, a run's table, curves and resume hint, and the
 before/after comparison (HTML for viser's panels)."""
 
@@ -9,10 +9,10 @@ import math
 
 import numpy as np
 
-from app.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
-from app.panels import region_text
-from app.supervisor import resumable
-from app.truth import went_wrong_text
+from app.jobs.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
+from app.render.panels import region_text
+from app.jobs.supervisor import resumable
+from app.render.truth import went_wrong_text
 from gsmn.attribution import STAGE_COLOURS, STAGE_TITLES, reported_stages
 from gsmn.world.spec import split_of
 
@@ -165,7 +165,7 @@ def episode_html(r: EpisodeRow, note: str) -> str:
                  ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
                   else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
                                                                     f"goal, P {a['goal_peak_p']:.2f})")]
-        if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.truth)
+        if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.render.truth)
             rows.append(("went wrong", went_wrong_text(a["failed_from"], ("<b>", "</b>"))))
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
     both = both_readings(r)

@@ -4,7 +4,7 @@ The page and the HTTP API never touch them: they post commands (`Runner.post`) a
 Between two steps of a live episode the runner answers commands, so the page stays responsive while an
 episode flies, and pause, single step, cancel and counterfactual grounding all take effect at once. Episodes
 fly through `gsmn.task.rollout.rollout`, the one rollout function evaluation and data collection use; its
-`on_step` callback records each step (`app.recording`) and tells the listeners (the viewer).
+`on_step` callback records each step (`app.live.recording`) and tells the listeners (the viewer).
 
 A model "watches" every episode when a checkpoint is loaded: flying itself, or beside the expert, whose
 episodes then show what the model would have mapped, grounded and done.
@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from app.colors import jpeg_bytes
-from app.commands import (
+from app.render.colors import jpeg_bytes
+from app.live.commands import (
     MAX_ENV_ID,
     MAX_QUEUED,
     POLICIES,
@@ -50,9 +50,9 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.compare import ComparingRunner, Comparison
-from app.layers import NOT_KEPT, MapHeads
-from app.recording import (
+from app.live.compare import ComparingRunner, Comparison
+from app.render.layers import NOT_KEPT, MapHeads
+from app.live.recording import (
     CANCELLED,
     FAILED,
     FINISHED,
@@ -134,7 +134,7 @@ class Runner(ComparingRunner):
         self.checkpoints_root = Path(checkpoints_root)
         self.default_ref = str(checkpoint) if checkpoint is not None else None
         self.require_checkpoint = require_checkpoint
-        self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)  # app.kept.KeptStore
+        self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)  # app.jobs.kept.KeptStore
         self.listeners: list[RunnerListener] = []
         self.models: dict[str, LoadedModel] = {}  # by resolved path
         self.extra_checkpoints: Callable[[], dict[str, Path]] | None = None  # e.g. fine-tuning runs', by name
@@ -152,7 +152,7 @@ class Runner(ComparingRunner):
         self._last_step = 0.0
         self.env: Env | None = None
         self.preview_env: Env | None = None  # renders a world asked for while an episode flies (made when needed)
-        self._origin: str | None = None  # the origin of the command being done (app.commands.Command.origin)
+        self._origin: str | None = None  # the origin of the command being done (app.live.commands.Command.origin)
         self.thread = threading.Thread(target=self._main, name="gsmn-runner", daemon=True)
 
     # -- the outside ------------------------------------------------------------------------------------------

@@ -75,7 +75,7 @@ class StepRecord:
     # the P(stop) the flown STOP was decided on when a model flew (a mirror ensemble's: the mean of its two
     # copies, where maps.stop_probability is the unmirrored copy's); None when the expert flew
     stop_probability: float | None = None
-    damaged: str | None = None  # why its maps could not be read back from the record (app.kept); None: they could
+    damaged: str | None = None  # why its maps could not be read back from the record (app.jobs.kept); None: they could
 
     @property
     def decisive_stop_probability(self) -> float | None:
@@ -129,9 +129,9 @@ class Episode:
     finished: float | None = None
     # the simulator's state at every step and the policy's every few (gsmn.task.fork), in memory, for forks
     snapshots: Any = None  # gsmn.task.fork.FlightSnapshots once it flies
-    fork: Any = None  # app.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
-    comparison: int | None = None  # the comparison it flies in (app.compare)
-    origin: str | None = None  # the browser tab that started it (app.commands.Command.origin); None: the API
+    fork: Any = None  # app.live.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
+    comparison: int | None = None  # the comparison it flies in (app.live.compare)
+    origin: str | None = None  # the browser tab that started it (app.live.commands.Command.origin); None: the API
     typed: str | None = None  # the instruction as typed (gsmn.task.understand); the task's is the template flown
 
     @property

@@ -3,7 +3,7 @@ monitor thread), cancel (SIGTERM to the group, SIGKILL `KILL_AFTER` s later), re
 a server restart, and settle a job whose process ended (finished, failed with the end of its output, or cancelled).
 
 What a job's progress means is not this module's concern: the monitor hands each watched job to `poll(handle)`,
-which reads its folder and calls `settle` once its process is gone (`app.jobs.JobManager`). A job whose `poll`
+which reads its folder and calls `settle` once its process is gone (`app.jobs.manager.JobManager`). A job whose `poll`
 fails (a progress line the record cannot hold, a full disk) is given up at once rather than polled again: its
 process group is killed, its slot freed, and it is marked failed with the reason, as soon as the record can be
 written (the monitor retries each round, so a full disk loses nothing once space is back).
@@ -23,8 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.commands import Conflict, RunnerError
-from app.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, Evaluation, RecordError, Run
+from app.live.commands import Conflict, RunnerError
+from app.jobs.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, Evaluation, RecordError, Run
 
 log = logging.getLogger("gsmn.dashboard")
 

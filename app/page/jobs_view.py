@@ -2,9 +2,9 @@
 failure attribution, replay one in the live view with one click, launch DAggerFM on the failures selected, watch
 its progress and curves, cancel it, fly its checkpoint, and rerun the same episodes before/after side by side.
 
-The jobs themselves run in their own processes (`app.jobs`); this view only posts requests to the JobManager and
+The jobs themselves run in their own processes (`app.jobs.manager`); this view only posts requests to the JobManager and
 reads the database. Job events and clicks go into one queue that a UI thread drains, redrawing at most twice a
-second, so a running job never slows the live view. What the tabs say is `app.jobs_panels`' (pure functions).
+second, so a running job never slows the live view. What the tabs say is `app.render.jobs_panels`' (pure functions).
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import traceback
 import viser
 import viser.uplot
 
-from app.commands import RunnerError, RunnerListener, StartEpisode
-from app.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
-from app.jobs import JobManager
-from app.jobs_api import replay_policy
-from app.jobs_panels import (
+from app.live.commands import RunnerError, RunnerListener, StartEpisode
+from app.jobs.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
+from app.jobs.manager import JobManager
+from app.api.jobs import replay_policy
+from app.render.jobs_panels import (
     CURVE_AXES,
     CURVE_SERIES,
     SETTING_HINTS,
@@ -48,9 +48,9 @@ from app.jobs_panels import (
     stage_title,
     summary_html,
 )
-from app.panels import error_html
-from app.recording import Episode
-from app.run_settings import RUN_PRESETS, run_settings
+from app.render.panels import error_html
+from app.live.recording import Episode
+from app.jobs.settings import RUN_PRESETS, run_settings
 from gsmn.attribution import PIPELINE, reported_stages
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS

@@ -1,12 +1,12 @@
 """The HTTP API (FastAPI; OpenAPI docs at /docs): start episodes, read their results and per-step data, and
 ground counterfactual instructions on an episode's semantic map at any step.
 
-It posts the same runner commands as the page (`app.runner`), so both share one behaviour. Handlers are plain
+It posts the same runner commands as the page (`app.live.runner`), so both share one behaviour. Handlers are plain
 `def`s: FastAPI runs them on its thread pool, where waiting for the runner blocks nobody else. Every error
 answers with a JSON body {"detail": "<what was wrong>"}: 404 for unknown episodes, 409 when the request does not
 fit the state (no model loaded, no map yet, the queue full), 422 for bad input (an instruction that cannot be
-understood, env_id < 0, NaN, missing checkpoint; `app.schema` says what every input may be), 503 when the simulator
-does not answer in time; 401, 403 and 421 from the access checks (`app.access`). The OpenAPI schema lists each route's.
+understood, env_id < 0, NaN, missing checkpoint; `app.api.schema` says what every input may be), 503 when the simulator
+does not answer in time; 401, 403 and 421 from the access checks (`app.api.access`). The OpenAPI schema lists each route's.
 """
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.colors import png_bytes, upscale
-from app.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
-from app.db import RecordError
-from app.layers import LAYERS, map_layers
-from app.recording import Episode, EpisodeResult
-from app.runner import Runner
-from app.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
-from app.truth import TRUTH_LAYERS, episode_truth, step_figures, truth_rgb, went_wrong
+from app.render.colors import png_bytes, upscale
+from app.live.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
+from app.jobs.db import RecordError
+from app.render.layers import LAYERS, map_layers
+from app.live.recording import Episode, EpisodeResult
+from app.live.runner import Runner
+from app.api.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
+from app.render.truth import TRUTH_LAYERS, episode_truth, step_figures, truth_rgb, went_wrong
 from gsmn.model.heads import positive_probability
 
 log = logging.getLogger("gsmn.dashboard")
@@ -212,8 +212,8 @@ def summary(e: Episode) -> EpisodeSummary:
 
 
 def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=None) -> FastAPI:
-    """The API around `runner`; with `jobs` (app.jobs.JobManager) also evaluations and fine-tuning runs; with
-    `keeper` (app.kept.EpisodeKeeper) every episode kept in the record: searched, pinned, exported."""
+    """The API around `runner`; with `jobs` (app.jobs.manager.JobManager) also evaluations and fine-tuning runs; with
+    `keeper` (app.jobs.kept.EpisodeKeeper) every episode kept in the record: searched, pinned, exported."""
     app = FastAPI(title="GSMN dashboard API", version="1.0",
                   description="Fly instructions with GSMN (Blukis et al., RSS 2018) on the MuJoCo quadcopter, read "
                               "episodes step by step, and ground counterfactual instructions on a semantic map "
@@ -248,7 +248,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                              "errors": plain_errors(e.errors())}, status_code=422)
 
     if jobs is not None:
-        from app.jobs_api import add_job_routes
+        from app.api.jobs import add_job_routes
 
         add_job_routes(app, jobs, runner)
 
@@ -277,7 +277,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                               typed_instruction=e.typed, policy=e.policy)
 
     if keeper is not None:
-        from app.kept_api import add_kept_routes
+        from app.api.kept import add_kept_routes
 
         add_kept_routes(app, runner, keeper, summary)
     else:
@@ -344,7 +344,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
         record = step_of(e, step)
         if record.damaged:
             raise RecordError(record.damaged)
-        from app.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
+        from app.render.export import heads_for  # an episode kept from an earlier server: its checkpoint's heads
 
         heads = heads_for(runner, e)
         if record.maps is None or heads is None:
@@ -375,7 +375,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs=None, keeper=No
                               relevance_probability=None if relevance is None else np.round(relevance, 4).tolist(),
                               goal_probability=None if goal is None else np.round(goal, 4).tolist())
 
-    from app.compare_api import add_compare_routes
+    from app.api.comparisons import add_compare_routes
 
     add_compare_routes(app, runner)
     return app

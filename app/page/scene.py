@@ -14,7 +14,7 @@ import math
 import numpy as np
 import viser
 
-from app.colors import decode_image, png_bytes, upscale, with_alpha
+from app.render.colors import decode_image, png_bytes, upscale, with_alpha
 from gsmn.task.instructions import Instruction
 from gsmn.world.assets import AssetModel
 from gsmn.world.spec import WorldSpec

@@ -1,5 +1,5 @@
-"""The API's routes for the episodes kept in the record (`app.kept`): search them, pin them, see and set the space
-they may take, and export one (`app.export`)."""
+"""The API's routes for the episodes kept in the record (`app.jobs.kept`): search them, pin them, see and set the space
+they may take, and export one (`app.render.export`)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from fastapi import FastAPI, Query
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
-from app.commands import Conflict, NotFound, RunnerError
-from app.kept import OUTCOMES, row_summary, search
-from app.schema import MAX_ID, Strict, Text, path_id, responses
+from app.live.commands import Conflict, NotFound, RunnerError
+from app.jobs.kept import OUTCOMES, row_summary, search
+from app.api.schema import MAX_ID, Strict, Text, path_id, responses
 
 EpisodeId = Annotated[int, path_id("episode")]
 MAX_TIME = 1e11  # unix seconds, year 5138
@@ -35,7 +35,7 @@ class StorageRequest(Strict):
 
 
 def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
-    from app.api import EpisodeSummary
+    from app.api.episodes import EpisodeSummary
 
     store, db = keeper.store, keeper.db
 
@@ -128,7 +128,7 @@ def add_kept_routes(app: FastAPI, runner, keeper, summary) -> None:
                      "or MP4 of the camera beside the maps with the step, instruction and result written on it")
     def export(episode_id: EpisodeId, format: Annotated[Literal["html", "gif", "mp4"], Query(
             description="html: a page that plays back offline; gif or mp4: for slides")] = "html") -> Response:
-        from app.export import MEDIA_TYPES, export_episode, heads_for
+        from app.render.export import MEDIA_TYPES, export_episode, heads_for
 
         episode = store.get(episode_id)
         if episode is None:

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from app.colors import (
+from app.render.colors import (
     apply_colormap,
     channels_legend_html,
     channels_rgb,
@@ -52,7 +52,7 @@ from gsmn.world.landmarks import CATALOGUE
 # the record's maps the heads read, and the names of their layers (in the page and the API)
 READ_MAPS = {"semantic_map_w": "semantic", "relevance_map_w": "relevance", "goal_map_w": "goal",
              "goal_map_r": "goal_robot"}
-# Maps of the record the dashboard does not keep per step (app.runner): the image features and their projection
+# Maps of the record the dashboard does not keep per step (app.live.runner): the image features and their projection
 # are the largest (about 100 kB a step together, more than all the others), and the semantic map holds what they
 # add up to.
 NOT_KEPT = ("features_c", "projected_features_w")
@@ -122,7 +122,7 @@ def _scalar_layer(name: str, values: np.ndarray, alpha: np.ndarray, range_mode: 
 
 def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: str, title: str,
                     channel: str = "channel", start: int = 0, shared: bool = False) -> Layer:
-    """Up to three channels of a map as one picture (`app.colors.channels_rgb`), for a map no trained head reads;
+    """Up to three channels of a map as one picture (`app.render.colors.channels_rgb`), for a map no trained head reads;
     opacity grows with the brightest channel, as `_scalar_layer`'s does with its value."""
     rgb, brightest = channels_rgb(maps, observed, shared)
     return Layer(name, title, rgb, observed.astype(np.float32) * (0.12 + 0.88 * brightest),
@@ -134,7 +134,7 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
                  world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
     """All four layers of one step (maps as stored: float16 or float32, channels first). With `world_names` (the
     world's landmark names) the semantic map colours and lists only those, one entry per name, and draws cells
-    read as another world's landmark in one pale colour (`app.colors.world_classes`)."""
+    read as another world's landmark in one pale colour (`app.render.colors.world_classes`)."""
     if value_mode not in VALUE_MODES:
         raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
     if range_mode not in RANGE_MODES:

@@ -8,7 +8,7 @@ import logging
 import math
 from pathlib import Path
 
-from app.db import Database, EpisodeRow, Evaluation
+from app.jobs.db import Database, EpisodeRow, Evaluation
 from gsmn.config import RunConfig
 from gsmn.task.metrics import record_region_steps, region_stop_probability
 

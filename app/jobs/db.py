@@ -22,14 +22,14 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from app.commands import RunnerError
+from app.live.commands import RunnerError
 
 QUEUED, RUNNING, FINISHED, FAILED, CANCELLED = "queued", "running", "finished", "failed", "cancelled"
 ACTIVE = (QUEUED, RUNNING)
 STATUSES = (QUEUED, RUNNING, FINISHED, FAILED, CANCELLED)
 SCHEMA_VERSION = 4  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
 # record gains the columns on opening: 0 for mirror_ensemble, NULL, "not known", for the region); 4: the tables
-# kept_episodes and kept_steps (every episode flown in the page or over the API, app.kept; an older record gains
+# kept_episodes and kept_steps (every episode flown in the page or over the API, app.jobs.kept; an older record gains
 # them empty)
 
 SCHEMA = """
@@ -84,7 +84,7 @@ CREATE TABLE IF NOT EXISTS runs (
     created REAL NOT NULL,
     started REAL,
     finished REAL,
-    settings TEXT NOT NULL,         -- JSON: app.run_settings.RunSettings
+    settings TEXT NOT NULL,         -- JSON: app.jobs.settings.RunSettings
     env_ids TEXT,                   -- JSON list, or NULL for the train split
     source_evaluation_id INTEGER,   -- the evaluation whose failures it trains on
     init_checkpoint TEXT NOT NULL,
@@ -98,7 +98,7 @@ CREATE TABLE IF NOT EXISTS runs (
     cancel_requested INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS episodes_by_evaluation ON episodes (evaluation_id, position);
-CREATE TABLE IF NOT EXISTS kept_episodes (  -- an episode flown in the page or over the API (app.kept)
+CREATE TABLE IF NOT EXISTS kept_episodes (  -- an episode flown in the page or over the API (app.jobs.kept)
     id INTEGER PRIMARY KEY AUTOINCREMENT,  -- the runner's episode id: never reused, also after a removal
     created REAL NOT NULL,          -- unix time it started flying
     finished REAL,
@@ -113,7 +113,7 @@ CREATE TABLE IF NOT EXISTS kept_episodes (  -- an episode flown in the page or o
     horizon INTEGER NOT NULL,
     steps INTEGER NOT NULL DEFAULT 0,
     success INTEGER,                -- NULL until it finishes
-    result TEXT,                    -- JSON: app.recording.EpisodeResult
+    result TEXT,                    -- JSON: app.live.recording.EpisodeResult
     error TEXT,
     pinned INTEGER NOT NULL DEFAULT 0,
     bytes INTEGER NOT NULL DEFAULT 0  -- the stored size of its steps (camera JPEGs, quantised maps, numbers)
@@ -123,7 +123,7 @@ CREATE TABLE IF NOT EXISTS kept_steps (
     step INTEGER NOT NULL,
     data TEXT NOT NULL,             -- JSON: pose, actions, P(stop), T_world_camera, the model's own action
     camera BLOB NOT NULL,           -- JPEG
-    maps BLOB,                      -- the model's maps, quantised to 8 bits per channel (app.kept.pack_maps)
+    maps BLOB,                      -- the model's maps, quantised to 8 bits per channel (app.jobs.kept.pack_maps)
     PRIMARY KEY (episode_id, step)
 );
 CREATE INDEX IF NOT EXISTS kept_by_created ON kept_episodes (created);
@@ -412,7 +412,7 @@ class Database:
             rows = self._all("SELECT * FROM runs ORDER BY id")
         return [_decode(Run, r) for r in rows]
 
-    # -- kept episodes (app.kept) ------------------------------------------------------------------------------
+    # -- kept episodes (app.jobs.kept) ------------------------------------------------------------------------------
     def next_kept_id(self) -> int:
         """The first episode id never given: ids are not reused after a removal (AUTOINCREMENT's sequence)."""
         rows = self._all("SELECT seq FROM sqlite_sequence WHERE name = 'kept_episodes'")

@@ -1,8 +1,8 @@
 """The browser page (viser): controls on the left, the 3D scene in the middle, camera and maps on the right.
 
-Every action goes to the runner as a command (`app.runner`), the same commands the HTTP API posts. What the
+Every action goes to the runner as a command (`app.live.runner`), the same commands the HTTP API posts. What the
 runner reports (a world shown, an episode started, a step recorded, an episode ended) and what a person does go
-into this viewer's event queue as typed records (`app.viewer_events`); one UI thread turns events into scene and GUI
+into this viewer's event queue as typed records (`app.page.events`); one UI thread turns events into scene and GUI
 updates, drawing only the newest step when the simulator is ahead of the page, so a slow browser never slows the
 simulator. The timeline shows any recorded
 step of the displayed episode, live or finished, with every view (scene, camera, maps, readouts) in sync.
@@ -35,8 +35,8 @@ import viser
 import viser.uplot
 from viser._messages import GuiSliderMark
 
-from app.colors import jpeg_bytes
-from app.commands import (
+from app.render.colors import jpeg_bytes
+from app.live.commands import (
     Cancel,
     Ground,
     Grounding,
@@ -50,9 +50,9 @@ from app.commands import (
     StepOnce,
     WorldShown,
 )
-from app.compare_view import CompareView
-from app.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
-from app.panels import (
+from app.page.compare_view import CompareView
+from app.render.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
+from app.render.panels import (
     ACTIONS_AXES,
     ACTIONS_SCALES,
     ACTIONS_SERIES,
@@ -75,11 +75,11 @@ from app.panels import (
     which_landmark,
     world_summary,
 )
-from app.recording import Episode, StepRecord
-from app.runner import Runner
-from app.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
-from app.truth import result_rows
-from app.viewer_events import (
+from app.live.recording import Episode, StepRecord
+from app.live.runner import Runner
+from app.page.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
+from app.render.truth import result_rows
+from app.page.events import (
     Close,
     CursorMoved,
     EpisodeEnded,
@@ -160,7 +160,7 @@ class Viewer(RunnerListener):
 
     def __init__(self, client: viser.ClientHandle, runner: Runner, env_id: int = 70):
         self.client = client
-        self.origin = f"tab-{client.client_id}"  # on the commands this tab posts (app.commands.Command.origin)
+        self.origin = f"tab-{client.client_id}"  # on the commands this tab posts (app.live.commands.Command.origin)
         self.runner = runner
         self._checkpoint_of_choice: dict[str, str] = {}  # a policy menu entry ("Model: <label>") -> checkpoint name
         cam = runner.config.camera
@@ -286,10 +286,10 @@ class Viewer(RunnerListener):
             self.whatif_buttons = gui.add_button_group("Ground", ("Ground", "Clear"))
             self.whatif_note = gui.add_markdown("Type another instruction: its relevance and goal maps and the action "
                                                 "it would give appear at once, on the map already built.")
-        self.compare = CompareView(self)  # comparisons, forks and the ground truth (app.compare_view)
+        self.compare = CompareView(self)  # comparisons, forks and the ground truth (app.page.compare_view)
         self.compare.build_controls(gui)
         with gui.add_folder("Layers on the ground", expand_by_default=True):
-            # the world-frame layers of the model's output record (app.layers.LAYERS), the goal map shown first
+            # the world-frame layers of the model's output record (app.render.layers.LAYERS), the goal map shown first
             labels = {"semantic": ("Semantic map", False), "relevance": ("Relevance map", False),
                       "goal": ("Goal map", True)}
             self.layer_boxes = {name: gui.add_checkbox(*labels.get(name, (map_title(name), False)))

@@ -1,4 +1,4 @@
-"""The page's kept episodes (`app.kept`): an "Episodes" tab that lists and searches every episode flown in the page or
+"""The page's kept episodes (`app.jobs.kept`): an "Episodes" tab that lists and searches every episode flown in the page or
 over the API, replays one in the live view, pins it and exports it; a "Share" folder that makes a link to the step
 shown ("Copy link") and downloads the episode as HTML or GIF; and the link read on load.
 
@@ -6,7 +6,7 @@ shown ("Copy link") and downloads the episode as HTML or GIF; and the link read 
 script (an image's onerror handler, which viser's HTML element runs) that writes `location.search` into a hidden
 text field, and the field's update reaches the server with its client. `/?episode=123&step=40&layers=goal,relevance`
 then opens episode 123 at step 40 with those ground layers (and `presenter=1` turns presenter mode on), in the tab
-that opened it only: every tab has its own view (`app.viewer`). Opening a kept episode, from the list or a link,
+that opened it only: every tab has its own view (`app.page.viewer`). Opening a kept episode, from the list or a link,
 unticks the tab's "Show episodes started elsewhere", so that another tab's Run does not take it away.
 A link to an episode no longer kept says so, in the status line and as a notification to the tab that opened it.
 """
@@ -24,10 +24,10 @@ from urllib.parse import parse_qs
 
 import viser
 
-from app.commands import RunnerListener
-from app.kept import row_summary, search
-from app.panels import error_html
-from app.viewer_events import CursorMoved, EpisodeEnded, EpisodeStarted, OptionsChanged
+from app.live.commands import RunnerListener
+from app.jobs.kept import row_summary, search
+from app.render.panels import error_html
+from app.page.events import CursorMoved, EpisodeEnded, EpisodeStarted, OptionsChanged
 
 log = logging.getLogger("gsmn.dashboard")
 ROWS = 12
@@ -83,13 +83,13 @@ def row_label(row: dict) -> str:
 
 
 class EpisodesView(RunnerListener):
-    """The Episodes tab and the Share folder of one tab, beside its `viewer` (app.viewer.Viewer)."""
+    """The Episodes tab and the Share folder of one tab, beside its `viewer` (app.page.viewer.Viewer)."""
 
     def __init__(self, viewer, keeper, presenter=None):
         self.viewer, self.keeper = viewer, keeper
         self.store, self.db = keeper.store, keeper.db
         self.client: viser.ClientHandle = viewer.client
-        self.presenter = presenter  # app.presenter.Presenter, turned on by a link's presenter=1
+        self.presenter = presenter  # app.page.presenter.Presenter, turned on by a link's presenter=1
         self.rows: list[dict] = []
         self.selected: int | None = None
         self._closing = False
@@ -302,7 +302,7 @@ class EpisodesView(RunnerListener):
         self.refresh()
 
     def _on_export(self, event: viser.GuiEvent) -> None:
-        from app.export import export_episode, heads_for
+        from app.render.export import export_episode, heads_for
 
         shown = self.current()
         if shown is None or event.client is None:

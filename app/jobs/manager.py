@@ -8,7 +8,7 @@ each with `--config FOLDER/config.json`: the configuration the job runs with, sa
 
 Both write machine-readable progress (the evaluation one JSON line per episode; the run its folder's log.jsonl,
 state and progress.json), and one monitor thread in the server reads it and records it in the SQLite database
-(`app.db`): status (queued, running, finished, failed, cancelled), progress, metrics so far, the checkpoint when
+(`app.jobs.db`): status (queued, running, finished, failed, cancelled), progress, metrics so far, the checkpoint when
 done. Each failed episode of an evaluation is attributed to a stage of the model's pipeline from its recorded maps
 (`gsmn.attribution`).
 
@@ -22,8 +22,8 @@ At most `max_runs` runs and `max_evaluations` evaluations at a time (1 by defaul
 refused with a message, so background jobs never starve the live view of more cores.
 
 This module is what the API and the view call (`JobManager`): what each kind of job runs and how its folder reads.
-The process groups themselves are `app.supervisor`'s, a run's settings `app.run_settings`', the recorded episodes,
-summaries and comparisons `app.results`'.
+The process groups themselves are `app.jobs.supervisor`'s, a run's settings `app.jobs.settings`', the recorded episodes,
+summaries and comparisons `app.jobs.results`'.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from app.commands import Forbidden, NotFound, RunnerError, TooLarge
-from app.db import FINISHED, Database, Evaluation, Run
-from app.results import EpisodeRecorder, compare, summarize_rows
-from app.run_settings import DEV_EPISODES, RunSettings, expert_store_key, run_config
-from app.supervisor import Handle, Supervisor, alive
+from app.live.commands import Forbidden, NotFound, RunnerError, TooLarge
+from app.jobs.db import FINISHED, Database, Evaluation, Run
+from app.jobs.results import EpisodeRecorder, compare, summarize_rows
+from app.jobs.settings import DEV_EPISODES, RunSettings, expert_store_key, run_config
+from app.jobs.supervisor import Handle, Supervisor, alive
 from gsmn.config import RunConfig
 
 log = logging.getLogger("gsmn.dashboard")
