@@ -22,6 +22,9 @@ judged (a failure the grounding head finds is "perception_or_grounding"); withou
 "goal_or_control"). "Never seen" needs no head and is always perception. Which heads were trained is read from the
 model's own configuration (`trained_heads`).
 
+The heads as arrays (`Heads`, `trained_heads`: gsmn.model.readout) and the map cells (`cell_of`, `cell_centre`,
+`observed_cells`: gsmn.model.grid) are shared with the ground truth (gsmn.analysis.truth) and named here too.
+
 `attribute` is a pure function of those maps, the head weights, the WorldSpec and the instruction; it is unit
 tested on hand-made maps. `TraceRecorder` wraps a GSMN policy during evaluation to keep the final maps and a few
 numbers per step, and `save_trace` / `load_trace` store them (compressed .npz, float16 maps, never unpickled).
@@ -36,9 +39,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsmn.analysis.truth import Agreement, agreement, first_failures, truth_maps
 from gsmn.config import RunConfig
-from gsmn.model.grid import world_cell
+from gsmn.model.grid import cell_centre as cell_centre
+from gsmn.model.grid import cell_of as cell_of
+from gsmn.model.grid import observed_cells as observed_cells
 from gsmn.model.heads import positive_probability, softmax
+from gsmn.model.readout import Heads as Heads
+from gsmn.model.readout import trained_heads as trained_heads
 from gsmn.task.instructions import Instruction
 from gsmn.task.metrics import side_of
 from gsmn.world.catalogue import CATALOGUE
@@ -61,51 +69,6 @@ def reported_stages(*counts: dict[str, int]) -> tuple[str, ...]:
     untrained head), so tables of GSMN failures keep their four rows."""
     extra = sorted({k for c in counts for k, n in c.items() if n and k not in STAGES})  # over two untrained heads
     return tuple(k for k in STAGES if k in PIPELINE or any(c.get(k, 0) for c in counts)) + tuple(extra)
-
-
-@dataclass(frozen=True)
-class Heads:
-    """The auxiliary heads as arrays, weight (K, C) and bias (K,); `*_trained` is False for a head whose objective
-    the model was trained without (J_percept, J_ground, J_plan), which is its initialisation."""
-
-    perception_w: np.ndarray
-    perception_b: np.ndarray
-    grounding_w: np.ndarray
-    grounding_b: np.ndarray
-    goal_w: np.ndarray
-    goal_b: np.ndarray
-    goal_trained: bool = True
-    perception_trained: bool = True
-    grounding_trained: bool = True
-    grounding_filter: bool = True  # False: the model has no grounding filter (the original code's -J_ground)
-    goal_filter: bool = True  # False: no goal filter (the original code's -J_goal); docs/model.md
-
-    @classmethod
-    def of(cls, model) -> Heads:
-        """The heads of a GSMN (gsmn.model.gsmn.GSMN) as float32 arrays."""
-        h = model.heads
-        if h.goal is None:
-            raise ValueError(f"a {model.kind!r} model has no goal head; attribution needs GSMN's maps")
-
-        def arr(t) -> np.ndarray:
-            return t.detach().cpu().float().numpy().copy()
-
-        trained = trained_heads(model)
-        return cls(arr(h.perception.weight), arr(h.perception.bias), arr(h.grounding.weight),
-                   arr(h.grounding.bias), arr(h.goal.weight), arr(h.goal.bias), trained["goal"],
-                   trained["perception"], trained["grounding"], model.config.model.grounding_filter,
-                   model.config.model.goal_filter)
-
-
-def trained_heads(model) -> dict[str, bool]:
-    """Which of a GSMN's auxiliary heads were trained ("perception", "grounding", "goal"): those whose objective
-    its configuration switches on with a weight above 0 ("gsmn-no-plan" switches J_plan off itself)."""
-    from gsmn.model.losses import objectives_for
-
-    loss = objectives_for(model.kind, model.config.loss)
-    return {"perception": loss.perception and loss.perception_weight > 0,
-            "grounding": loss.grounding and loss.grounding_weight > 0,
-            "goal": model.heads.goal is not None and loss.goal and loss.goal_weight > 0}
 
 
 @dataclass(frozen=True)
@@ -155,22 +118,6 @@ class Attribution:
 
 
 # -- helpers ------------------------------------------------------------------------------------------------------
-def cell_of(x: float, y: float, field_size: float, n: int) -> tuple[int, int]:
-    """The (row, col) of the north-up world-map cell holding (x, y), clamped into the map (gsmn.model.grid)."""
-    row, col = world_cell(x, y, field_size, n)
-    return min(max(row, 0), n - 1), min(max(col, 0), n - 1)
-
-
-def cell_centre(row: int, col: int, field_size: float, n: int) -> tuple[float, float]:
-    s = field_size / n
-    return (col + 0.5) * s, field_size - (row + 0.5) * s
-
-
-def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:
-    """(n, n) bool: cells the camera covered at some step (never-covered cells hold exactly zero)."""
-    return np.abs(semantic_map_w.astype(np.float32)).max(0) > 1e-6
-
-
 def bearing(from_xy: tuple[float, float], yaw: float, to_xy: tuple[float, float]) -> str:
     """Which of BEARINGS a point lies in as seen from a pose (x east, y north, yaw counter-clockwise from east):
     90-degree sectors centred on the heading ("ahead"), its opposite, and the two sides. The metric's quadrants
@@ -349,8 +296,6 @@ def failed_from(truth: np.ndarray | None, heads: Heads | None = None) -> dict[st
     whose head `heads` says was not trained."""
     if truth is None or len(truth) == 0:
         return None
-    from gsmn.analysis.truth import Agreement, first_failures
-
     def value(x) -> float | None:
         return None if not np.isfinite(x) else float(x)
 
@@ -375,8 +320,6 @@ class TraceRecorder:
         lm = task.world.landmarks[task.instruction.landmark_index]
         self._cell = cell_of(lm.x, lm.y, task.world.field_size, self.policy.model.config.model.map_size)
         self._rows, self._last, self._figures = [], None, []
-        from gsmn.analysis.truth import truth_maps
-
         self._truth = truth_maps(task.world, task.instruction, self.policy.model.config.model.map_size,
                                  self.policy.config.task.success_radius)
 
@@ -394,8 +337,6 @@ class TraceRecorder:
                            float(out.omega[0, 0]) * drone.max_yaw_rate,
                            float(torch.sigmoid(out.stop_logit[0, 0])), float(p_named), gr, gc, gp))
         self._last = out
-        from gsmn.analysis.truth import agreement
-
         f = agreement(out.semantic_map_w[0, 0].float().numpy(), relevance, goal, self._truth, self.heads)
         self._figures.append((*(np.nan if v is None else v for v in (f.perception, f.relevance, f.goal)),
                               f.region_share))

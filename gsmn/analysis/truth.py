@@ -24,7 +24,7 @@ The agreement figures, each in [0, 1], 1 for a perfect map:
 
 Each is None where it is undefined (no seen landmark cell yet, no footprint cell or no other cell seen), and where
 the model's head for it was never trained (the perception figure without J_percept, the relevance figure without
-J_ground, the goal figure without J_plan: `gsmn.attribution.trained_heads`).
+J_ground, the goal figure without J_plan: `gsmn.model.readout.trained_heads`).
 `first_failures` turns the figures over an episode into the step at which each stage first fell below its
 threshold (`gsmn.attribution` names the stage that failed; this says when).
 """
@@ -35,8 +35,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from gsmn.attribution import Heads, cell_centre, cell_of, observed_cells
+from gsmn.model.grid import cell_centre, cell_of, observed_cells
 from gsmn.model.heads import positive_probability, softmax
+from gsmn.model.readout import Heads
 from gsmn.task.instructions import Instruction
 from gsmn.task.metrics import success
 from gsmn.world.catalogue import CATALOGUE

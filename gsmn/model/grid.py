@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 
@@ -28,6 +29,23 @@ def world_cell(x, y, field_size: float, cells: int, floor=math.floor):
     gives an index outside [0, cells)). Numbers with `math.floor` (the default), tensors with `torch.floor`."""
     s = field_size / cells
     return floor((field_size - y) / s), floor(x / s)
+
+
+def cell_of(x: float, y: float, field_size: float, n: int) -> tuple[int, int]:
+    """The (row, col) of the north-up world-map cell holding (x, y), clamped into the map."""
+    row, col = world_cell(x, y, field_size, n)
+    return min(max(row, 0), n - 1), min(max(col, 0), n - 1)
+
+
+def cell_centre(row: int, col: int, field_size: float, n: int) -> tuple[float, float]:
+    """The (x, y) of a north-up world-map cell's centre."""
+    s = field_size / n
+    return (col + 0.5) * s, field_size - (row + 0.5) * s
+
+
+def observed_cells(semantic_map_w: np.ndarray) -> np.ndarray:
+    """(n, n) bool: cells the camera covered at some step (never-covered cells hold exactly zero)."""
+    return np.abs(semantic_map_w.astype(np.float32)).max(0) > 1e-6
 
 
 @dataclass(frozen=True)
