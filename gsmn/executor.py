@@ -14,7 +14,8 @@ result per job, in the order of the jobs. An `Executor` does exactly that, on on
 A job's result does not depend on the worker it runs on (episodes are seeded per job, never per worker), so
 every backend gives the same results for the same jobs. Work that changes rarely and is big (DAggerFM's policy
 weights, once per iteration) is `share`d: the local backends hand the worker a path on this host, Ray puts the
-files in its object store once and each actor fetches them once (`open_shared`).
+files in its object store once and each actor fetches them once (`open_shared`). The interface and the shared
+folders are `gsmn.executor_base`'s, which both this module and `gsmn.executor_ray` build on.
 
 Stopping early (SIGTERM, Ctrl-C, an error in the caller) finishes the jobs in flight on the local pool and
 starts no more; on Ray the actors are ended. Callers write each result atomically, so a stopped run resumes
@@ -24,12 +25,13 @@ from what was finished (`gsmn eval --resume`, `collect` skipping what exists, DA
 from __future__ import annotations
 
 import multiprocessing
-import os
-from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
+
+from gsmn.executor_base import Executor, call_job
+from gsmn.executor_base import open_shared as open_shared
+from gsmn.executor_base import shared_key as shared_key
 
 BACKENDS = ("local", "ray")
 
@@ -50,30 +52,6 @@ class ExecutorOptions:
 LOCAL = ExecutorOptions()
 
 
-class Executor(ABC):
-    """`workers` workers, each set up by `initializer(*initargs)` in its own process (the serial backend: in this
-    one), running `fn(job)` or `fn(job, shared)`; `map` yields the results in the order of the jobs."""
-
-    remote = False  # True where workers may run on other hosts (then `share` sends the bytes, not a path)
-
-    @abstractmethod
-    def map(self, fn: Callable, jobs: Sequence, shared=None) -> Iterator:
-        """`fn(job)` (or `fn(job, shared)`) of every job on the workers, yielded in the order of `jobs`."""
-
-    def share(self, folder: Path | str):
-        """A handle to a folder's files for the workers (see `open_shared`): here, its path."""
-        return str(folder)
-
-    def close(self) -> None:  # noqa: B027 - nothing to release unless a backend holds workers
-        """Release the workers (finishing the jobs in flight)."""
-
-    def __enter__(self) -> Executor:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
 def make_executor(options: ExecutorOptions | None, workers: int, initializer: Callable, initargs: tuple = (),
                   in_process: Callable | None = None) -> Executor:
     """The executor `options` names, with `workers` workers. With one worker, the local backend and `in_process`
@@ -89,10 +67,6 @@ def make_executor(options: ExecutorOptions | None, workers: int, initializer: Ca
     return LocalExecutor(workers, initializer, initargs)
 
 
-def _call(fn: Callable, job, shared):
-    return fn(job) if shared is None else fn(job, shared)
-
-
 class SerialExecutor(Executor):
     def __init__(self, setup: Callable[[], Callable[[], None] | None]):
         self._setup = setup
@@ -104,7 +78,7 @@ class SerialExecutor(Executor):
             self._teardown = self._setup()
             self._ready = True
         for job in jobs:
-            yield _call(fn, job, shared)
+            yield call_job(fn, job, shared)
 
     def close(self) -> None:
         if self._ready and callable(self._teardown):
@@ -113,7 +87,7 @@ class SerialExecutor(Executor):
 
 
 def _pool_call(fn: Callable, shared, job):
-    return _call(fn, job, shared)
+    return call_job(fn, job, shared)
 
 
 class LocalExecutor(Executor):
@@ -136,25 +110,6 @@ class LocalExecutor(Executor):
         if self._pool is not None:  # finish the jobs in flight, start no more
             self._pool.shutdown(cancel_futures=True)
             self._pool = None
-
-
-# -- shared folders (in a worker) -------------------------------------------------------------------
-_opened: dict = {}
-
-
-def shared_key(handle) -> str:
-    """What tells one `share` handle from another (a path, or the object's id in Ray's store)."""
-    return str(handle) if isinstance(handle, str | os.PathLike) else handle.key
-
-
-def open_shared(handle) -> Path:
-    """In a worker: the folder a `share` handle names, on this host. A path is used as it is; files from Ray's
-    object store are fetched once per handle into a private folder of this worker process."""
-    if isinstance(handle, str | os.PathLike):
-        return Path(handle)
-    from gsmn.executor_ray import fetch_shared
-
-    return fetch_shared(handle, _opened)
 
 
 # -- probes (scripts/bench_executors.py) -----------------------------------------------------------

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import ray
 
-from gsmn.executor import Executor, _call
+from gsmn.executor_base import Executor, call_job, open_shared
 
 RETRIES = 3  # restarts of a dead actor, and retries of the job it was running
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "EGL_DEVICE_ID")
@@ -48,7 +48,7 @@ class EpisodeWorker:
         _resolve(initializer)(*initargs)
 
     def run(self, fn: tuple[str, str], job, shared):
-        return _call(_resolve(fn), job, shared)
+        return call_job(_resolve(fn), job, shared)
 
     def pid(self) -> int:
         return os.getpid()
@@ -61,6 +61,13 @@ class SharedFolder:
     def __init__(self, ref: ray.ObjectRef):
         self.ref = ref
         self.key = ref.hex()
+
+    def open(self) -> Path:
+        """The folder in this actor's process (`gsmn.executor_base.open_shared`)."""
+        return fetch_shared(self, _opened)
+
+
+_opened: dict = {}  # in an actor: the folder of the handle it fetched last, by its key
 
 
 def fetch_shared(handle: SharedFolder, opened: dict) -> Path:
@@ -152,7 +159,5 @@ def fetch_seconds(job, shared) -> float:
     import time
 
     t0 = time.perf_counter()
-    from gsmn.executor import open_shared
-
     open_shared(shared)
     return time.perf_counter() - t0
