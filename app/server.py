@@ -36,13 +36,13 @@ from app.api.access import (
     url,
 )
 from app.api.episodes import make_api
-from app.live.commands import Conflict, RunnerError, ShowEnv
-from app.page.episodes_view import EpisodesView
-from app.jobs.manager import JobManager
-from app.page.jobs_view import JobsView
 from app.jobs.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
-from app.page.presenter import Presenter
+from app.jobs.manager import JobManager
+from app.live.commands import Conflict, RunnerError, ShowEnv
 from app.live.runner import Runner
+from app.page.episodes_view import EpisodesView
+from app.page.jobs_view import JobsView
+from app.page.presenter import Presenter
 from app.page.viewer import Viewer, configure_server
 from gsmn.config import RunConfig
 
@@ -149,7 +149,7 @@ class Dashboard:
         self.keeper = EpisodeKeeper(self.kept, int((DEFAULT_LIMIT_MB if keep_mb is None else keep_mb) * 1e6),
                                     live=lambda: self.runner.live.id if self.runner.live else None)
         self.runner.listeners.append(self.keeper)
-        self.runner.extra_checkpoints = self.jobs.checkpoints
+        self.runner.checkpoints.extra = self.jobs.checkpoints
         token = resolve_token(token, host)
         api_socket = bind_socket(host, api_port)  # first: the checks of both servers need both ports
         install_viser_guard()
@@ -233,7 +233,7 @@ class Dashboard:
             if self.runner.default_model is None:
                 raise Conflict(f"no default checkpoint: {self.runner.checkpoint_message} Name one.")
             return Path(self.runner.default_model)
-        path = self.runner._path_of(ref)
+        path = self.runner.checkpoints.path_of(ref)
         try:
             if not (path / "meta.json").is_file():
                 raise RunnerError(f"no checkpoint at {path}")

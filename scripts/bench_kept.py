@@ -15,11 +15,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.live.commands import StartEpisode  # noqa: E402
 from app.jobs.db import Database  # noqa: E402
-from app.render.export import export_episode, heads_for  # noqa: E402
 from app.jobs.kept import EpisodeKeeper, KeptStore  # noqa: E402
+from app.live.commands import StartEpisode  # noqa: E402
 from app.live.runner import Runner  # noqa: E402
+from app.render.export import export_episode, heads_for  # noqa: E402
 from gsmn.config import preset  # noqa: E402
 
 

@@ -109,10 +109,10 @@ def main() -> int:
                 other = next(f"Model: {c.label or c.name}" for c in runner.checkpoint_list() if c.name == a.other)
             options = dashboard.viewer.compare.other.options
             choose(page, "Compare with", next(o for o in options if o.lower().startswith(other.lower()[:6])))
-            before = set(runner._comparison_store())
+            before = set(runner.pairs.store)
             page.get_by_role("button", name="Run both", exact=True).click()
-            wait(lambda: set(runner._comparison_store()) - before)
-            c = runner.comparison(max(set(runner._comparison_store()) - before))
+            wait(lambda: set(runner.pairs.store) - before)
+            c = runner.comparison(max(set(runner.pairs.store) - before))
             wait(lambda: not any(e.live for e in c.episodes))
             part = c.diverged_at()
             print(f"comparison {c.id}: episodes {[e.id for e in c.episodes]}, part at {part}, results "

@@ -12,8 +12,8 @@ import time
 import httpx
 import pytest
 
-from app.live.commands import SetSpeed
 from app.api.schema import MAX_ID
+from app.live.commands import SetSpeed
 from app.server import Dashboard
 from gsmn.config import preset, with_overrides
 

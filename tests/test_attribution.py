@@ -239,7 +239,8 @@ def test_a_real_episode_trace_and_its_attribution(tmp_path):
     """An untrained GSMN flies env 70 through evaluate(); its recorded trace is what the model held, and the
     attribution reads the maps as the dashboard's layers do."""
     from app.live.fixtures import make_untrained_checkpoint
-    from app.render.layers import MapHeads, inspect_cell
+    from app.live.models import MapHeads
+    from app.render.layers import inspect_cell
     from gsmn.evaluation import evaluate, results_dict
     from gsmn.model.checkpoint import load_checkpoint
 

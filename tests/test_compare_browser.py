@@ -71,10 +71,10 @@ def test_two_checkpoints_side_by_side_scrubbed_step_by_step(dashboard, page):
     page.get_by_text("Compare and fork").first.click()
     other = next(o for o in dashboard.viewer.compare.other.options if o.startswith("Model: other"))
     choose(page, "Compare with", other)
-    before = set(dashboard.runner._comparison_store())
+    before = set(dashboard.runner.pairs.store)
     page.get_by_role("button", name="Run both", exact=True).click()
-    wait_runner(lambda: set(dashboard.runner._comparison_store()) - before)
-    comparison = dashboard.runner.comparison(max(set(dashboard.runner._comparison_store()) - before))
+    wait_runner(lambda: set(dashboard.runner.pairs.store) - before)
+    comparison = dashboard.runner.comparison(max(set(dashboard.runner.pairs.store) - before))
     a, b = comparison.episodes
     assert a.checkpoint != b.checkpoint
     wait_runner(lambda: not a.live and not b.live)

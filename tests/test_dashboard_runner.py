@@ -12,7 +12,6 @@ import pytest
 import torch
 from support import until
 
-from app.render.colors import decode_image
 from app.live.commands import (
     Conflict,
     Ground,
@@ -28,6 +27,7 @@ from app.live.commands import (
 from app.live.fixtures import make_untrained_checkpoint
 from app.live.recording import CANCELLED, FINISHED, PAUSED
 from app.live.runner import Runner
+from app.render.colors import decode_image
 from gsmn.config import preset
 
 

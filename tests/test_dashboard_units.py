@@ -11,13 +11,15 @@ import re
 import numpy as np
 import pytest
 
+from app.live.models import MapHeads
+from app.live.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore, jpeg_bytes
+from app.page.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from app.render.colors import (
     UNSEEN_RGB,
     apply_colormap,
     class_palette,
     colorbar_html,
     decode_image,
-    jpeg_bytes,
     png_bytes,
     semantic_classes,
     semantic_legend_html,
@@ -25,7 +27,7 @@ from app.render.colors import (
     upscale,
     with_alpha,
 )
-from app.render.layers import MapHeads, build_layers, inspect_cell
+from app.render.layers import build_layers, inspect_cell
 from app.render.panels import (
     camera_html,
     cell_marks_html,
@@ -37,8 +39,6 @@ from app.render.panels import (
     status_line,
     timeline_marks,
 )
-from app.live.recording import FINISHED, QUEUED, RUNNING, Episode, EpisodeResult, EpisodeStore
-from app.page.scene import LABEL_GAP, boxes_overlap, label_box, label_heights, quadrant_angles
 from gsmn.config import preset
 from gsmn.model.grid import world_cell
 from gsmn.model.heads import positive_probability

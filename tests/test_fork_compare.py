@@ -120,7 +120,7 @@ def test_a_fork_with_another_instruction_flies_to_another_landmark(runner):
 
 
 def test_another_checkpoint_rebuilds_its_own_map_along_the_original_path(runner, tmp_path):
-    make_untrained_checkpoint(runner.checkpoints_root / "other", seed=1)  # offered: a name under checkpoints/
+    make_untrained_checkpoint(runner.checkpoints.root / "other", seed=1)  # offered: a name under checkpoints/
     original = fly(runner, 72, None, "model")
     t = 15
     fork = runner.call(ForkEpisode(original.id, t, checkpoint="other"))

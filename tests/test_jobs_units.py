@@ -12,10 +12,13 @@ import sqlite3
 import numpy as np
 import pytest
 
-from app.live.commands import RunnerError
 from app.jobs.db import Database, EpisodeRow
-from app.live.fixtures import make_untrained_checkpoint
 from app.jobs.manager import JobManager, evaluation_system, run_progress
+from app.jobs.results import region_steps_of, region_stop_p_of, summarize_rows
+from app.jobs.settings import RUN_PRESETS, run_config, run_settings
+from app.jobs.supervisor import pid_runs
+from app.live.commands import RunnerError
+from app.live.fixtures import make_untrained_checkpoint
 from app.render.jobs_panels import (
     compare_html,
     curve_data,
@@ -27,9 +30,6 @@ from app.render.jobs_panels import (
     run_resume_hint,
     summary_html,
 )
-from app.jobs.results import region_steps_of, region_stop_p_of, summarize_rows
-from app.jobs.settings import RUN_PRESETS, run_config, run_settings
-from app.jobs.supervisor import pid_runs
 from gsmn.attribution import STAGE_COLOURS
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize

@@ -1,5 +1,6 @@
-"""The Table 2 programme (gsmn/experiments/table2.py): six systems that differ only in their switch, and a programme
-that survives losing its machine (run folders and data gone) by resuming from its committed stage copies."""
+"""The Table 2 programme (gsmn/experiments/: recipe.py, programme.py, table.py, and table2.py its command line):
+six systems that differ only in their switch, and a programme that survives losing its machine (run folders and
+data gone) by resuming from its committed stage copies."""
 
 from __future__ import annotations
 
@@ -13,9 +14,22 @@ from pathlib import Path
 
 from gsmn import evaluation
 from gsmn.config import LossConfig
-from gsmn.experiments import table2
-from gsmn.experiments.table2 import RECIPES, SYSTEMS, Layout, System, collect_store, data_needed, run_system
+from gsmn.experiments import programme
+from gsmn.experiments.programme import Layout, collect_store, data_needed, run_system
+from gsmn.experiments.recipe import (
+    BY_NAME,
+    RECIPES,
+    SYSTEMS,
+    System,
+    environments,
+    kept_partial,
+    partial_path,
+    read_stage,
+    system_configs,
+)
+from gsmn.experiments.table import orderings_markdown, pending, table1_markdown, table_markdown, wilson
 from gsmn.model.losses import objectives_for
+from gsmn.task.metrics import sign_test
 from gsmn.training.store import EpisodeStore
 
 
@@ -31,12 +45,12 @@ def _leaves(d: dict, prefix: str = "") -> dict:
 
 def test_the_six_systems_differ_from_the_control_only_in_their_switch():
     recipe = RECIPES["paper"]
-    control = [_leaves(c.to_dict()) for c in table2.system_configs(SYSTEMS[0], recipe)]
+    control = [_leaves(c.to_dict()) for c in system_configs(SYSTEMS[0], recipe)]
     assert SYSTEMS[0].switch == {} and SYSTEMS[0].kind == "gsmn"
     assert [s.name for s in SYSTEMS] == ["gsmn", "no-plan", "no-ground", "no-lang", "no-percept", "pose-noise",
                                          "no-ground-module", "no-plan-module", "gs-fpv", "gs-fpv-mem"]
     for system in SYSTEMS[1:]:
-        for stage, (ours, theirs) in enumerate(zip(control, table2.system_configs(system, recipe), strict=True)):
+        for stage, (ours, theirs) in enumerate(zip(control, system_configs(system, recipe), strict=True)):
             theirs = _leaves(theirs.to_dict())
             differ = {k for k in ours if ours[k] != theirs[k]}
             assert differ == set(system.switch), (system.name, stage, differ)
@@ -50,16 +64,25 @@ def test_the_six_systems_differ_from_the_control_only_in_their_switch():
         "no-plan-module": {"model.goal_filter": False, "loss.goal": False},
         "gs-fpv": {}, "gs-fpv-mem": {}}  # the baselines differ in their kind alone
     # the -J_plan system's kind trains exactly the loss its config says: the kind adds nothing of its own
-    no_plan = table2.BY_NAME["no-plan"]
-    loss = table2.system_configs(no_plan, recipe)[0].loss
+    no_plan = BY_NAME["no-plan"]
+    loss = system_configs(no_plan, recipe)[0].loss
     assert objectives_for(no_plan.kind, loss) == loss == dataclasses.replace(LossConfig(), goal=False)
     assert [s.kind for s in SYSTEMS if s.name not in ("no-plan", "gs-fpv", "gs-fpv-mem")] == ["gsmn"] * 7
-    assert [table2.BY_NAME[n].kind for n in ("gs-fpv", "gs-fpv-mem")] == ["gs-fpv", "gs-fpv-mem"]
+    assert [BY_NAME[n].kind for n in ("gs-fpv", "gs-fpv-mem")] == ["gs-fpv", "gs-fpv-mem"]
     # the recipe, shared by all: supervised at the paper's learning rate, DAggerFM at a lower one
     sup, dagger = control
     assert sup["train.epochs"] == recipe.epochs and sup["train.learning_rate"] == 1e-3
     assert dagger["train.learning_rate"] == recipe.dagger_learning_rate
     assert {k for k in sup if sup[k] != dagger[k]} == {"train.learning_rate"}
+
+
+def test_the_recipe_reads_stage_copies_without_training_evaluation_or_torch():
+    """The dashboard labels checkpoints with gsmn.experiments.recipe's `describe_stage` and `read_stage`: importing it
+    loads neither training, evaluation, the model (torch) nor the programme."""
+    code = "import sys, gsmn.experiments.recipe; print(' '.join(sorted(sys.modules)))"
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    heavy = ("torch", "gsmn.training", "gsmn.evaluation", "gsmn.model", "gsmn.experiments.programme")
+    assert [m for m in loaded if m.startswith(heavy)] == []
 
 
 def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anything_starts(tmp_path):
@@ -69,7 +92,7 @@ def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anythi
 
     recipe = RECIPES["paper"]
     for system in SYSTEMS:
-        for cpu, gpu in zip(table2.system_configs(system, recipe), table2.system_configs(system, recipe, 2, "cuda"),
+        for cpu, gpu in zip(system_configs(system, recipe), system_configs(system, recipe, 2, "cuda"),
                             strict=True):
             cpu, gpu = _leaves(cpu.to_dict()), _leaves(gpu.to_dict())
             assert {k for k in cpu if cpu[k] != gpu[k]} == {"train.device", "train.prefetch"}
@@ -92,10 +115,10 @@ def test_a_gpu_changes_only_where_the_systems_train_and_is_refused_before_anythi
 
 
 def test_the_paired_figures_of_the_table():
-    assert table2.sign_test(0, 0) == 1.0
-    assert abs(table2.sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
-    assert table2.sign_test(0, 10) < 0.002 and table2.sign_test(5, 5) == 1.0
-    low, high = table2.wilson(240, 300)
+    assert sign_test(0, 0) == 1.0
+    assert abs(sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
+    assert sign_test(0, 10) < 0.002 and sign_test(5, 5) == 1.0
+    low, high = wilson(240, 300)
     assert 75.0 < low < 75.2 and 84.0 < high < 84.2  # p 0.8 at n 300
 
 
@@ -110,19 +133,19 @@ def test_a_progress_bar_times_the_stage_it_shows_not_the_programme():
     from tqdm import tqdm
 
     bar = tqdm(total=1, file=io.StringIO(), mininterval=0)
-    table2.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 0, 600)
+    programme.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 0, 600)
     bar.start_t -= 100  # 100 s into the epoch
-    table2.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 50, 600)
+    programme.show_progress(bar, "gsmn", "supervised epoch 1/16 train", 50, 600)
     assert "50/600 [01:40<18:20" in tqdm.format_meter(**bar.format_dict)  # 0.5 batches/s: 550 left in 1100 s
-    table2.show_progress(bar, "gsmn", "evaluated", 150, 300)  # a resumed evaluation, half done before
+    programme.show_progress(bar, "gsmn", "evaluated", 150, 300)  # a resumed evaluation, half done before
     assert bar.format_dict["elapsed"] < 5 and bar.desc == "gsmn: evaluated" and bar.total == 300
     bar.start_t -= 10
-    table2.show_progress(bar, "gsmn", "evaluated", 160, 300)
+    programme.show_progress(bar, "gsmn", "evaluated", 160, 300)
     meter = tqdm.format_meter(**bar.format_dict)
     assert "160/300 [00:10<02:20" in meter  # 10 episodes in 10 s, so 140 left in 140 s (not 160 in 10 s)
-    table2.show_progress(bar, "gsmn", "evaluated", 20, 300)  # restarted from the stage copy: the count went back
+    programme.show_progress(bar, "gsmn", "evaluated", 20, 300)  # restarted from the stage copy: the count went back
     bar.start_t -= 10
-    table2.show_progress(bar, "gsmn", "evaluated", 30, 300)
+    programme.show_progress(bar, "gsmn", "evaluated", 30, 300)
     assert "30/300 [00:10<04:30" in tqdm.format_meter(**bar.format_dict)  # 10 in 10 s, never a negative rate
     bar.close()
 
@@ -165,7 +188,7 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert "supervised epoch 1 of 2" not in "".join(history)
     assert _git(repo, "status", "--porcelain") != ""
     # ... until the work pauses: --keep-latest commits the copy there is (the one resume copy, replaced)
-    table2.keep_latest(layout, [control], commit=True, log=lines.append)
+    programme.keep_latest(layout, [control], commit=True, log=lines.append)
     assert _git(repo, "log", "-1", "--format=%s").strip() == \
         "table2: GSMN, dagger iteration 1 of 2 (stage copy for resuming)"
     # one copy in the tree: a checkpoint with its Adam state (safetensors: no pickle) and the run's small files
@@ -196,7 +219,7 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
 
     # the compact evaluation: figures per episode, no trajectories; committed with the last stage
     assert result == json.loads((ship / "evaluation.json").read_text())
-    assert result["env_ids"] == table2.environments(recipe)["eval"] and len(result["episodes"]) == 1
+    assert result["env_ids"] == environments(recipe)["eval"] and len(result["episodes"]) == 1
     episode = result["episodes"][0]
     assert {"env_id", "success", "goal_distance", "stage", "final_x"} <= set(episode) and "trajectory" not in episode
     assert (episode["stage"] is None) == episode["success"]
@@ -206,16 +229,16 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
         "table2: GSMN, dagger iteration 2 of 2 (stage copy for resuming)"]
     # finished: weights, config, vocabulary and meta, no optimizer state; a further start has nothing to do
     assert not list(ship.glob("optimizer.*"))
-    assert table2.done(layout, control, recipe)
+    assert programme.done(layout, control, recipe)
     assert run_system(control, layout, recipe, threads=1, commit=True, log=lines.append) == result
     # the control is also flown on Table 1's test environments, kept the same way
     test = json.loads((ship / "table1.json").read_text())
-    assert test["split"] == "test" and test["env_ids"] == table2.environments(recipe)["table1"] == [70]
+    assert test["split"] == "test" and test["env_ids"] == environments(recipe)["table1"] == [70]
     assert len(test["episodes"]) == 1 and "trajectory" not in test["episodes"][0]
     assert f"| GSMN, Table 2's recipe (`checkpoints/table2/gsmn`) | {test['summary']['success']:.2f} (" \
-        in table2.table1_markdown(layout.ship)
+        in table1_markdown(layout.ship)
     assert _git(repo, "status", "--porcelain") == ""
-    table = table2.table_markdown(layout.ship)
+    table = table_markdown(layout.ship)
     assert "| GSMN | " in table and "| GSMN without J_ground | not yet (not started) |" in table
     # a start after the end does nothing more
     assert run_system(control, layout, recipe, threads=1, log=lines.append) == result
@@ -224,21 +247,21 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     # further stage copy replaces the evaluations, and the new model is evaluated on dev; below the gate, no Table 1
     longer = dataclasses.replace(recipe, iterations=3, control_gate=101.0)
     assert data_needed(layout, recipe, [control]) == () and data_needed(layout, longer, [control]) == ("dev",)
-    publish = table2.publish
+    publish = programme.publish
 
     def killed_while_copying(run_root, folder, stage, supervised_log=None):  # after the run saved its state
         if folder == ship:
             raise KeyboardInterrupt
         publish(run_root, folder, stage, supervised_log)
 
-    monkeypatch.setattr(table2, "publish", killed_while_copying)
+    monkeypatch.setattr(programme, "publish", killed_while_copying)
     try:
         run_system(control, layout, longer, threads=1, commit=True, log=lines.append)
         raise AssertionError("the stage copy should not have been made")
     except KeyboardInterrupt:
         pass
-    assert table2._state_epoch(layout.run(control, "dagger")) == 3 and table2.read_stage(ship)["epoch"] == 2
-    monkeypatch.setattr(table2, "publish", publish)
+    assert programme._state_epoch(layout.run(control, "dagger")) == 3 and read_stage(ship)["epoch"] == 2
+    monkeypatch.setattr(programme, "publish", publish)
     lines.clear()
     extended = run_system(control, layout, longer, threads=1, commit=True, log=lines.append)  # copies, evaluates
     log = [json.loads(line) for line in (layout.run(control, "dagger") / "log.jsonl").read_text().splitlines()]
@@ -247,7 +270,7 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
     assert (stage["epoch"], stage["epochs"], stage["evaluated"]) == (3, 3, True)
     assert extended == json.loads((ship / "evaluation.json").read_text()) and extended["summary"]["count"] == 1
     assert not (ship / "table1.json").exists(), "the old model's Table 1 evaluation went with its stage copy"
-    assert table2.control_below_gate(layout, longer) == extended["summary"]["success"]
+    assert programme.control_below_gate(layout, longer) == extended["summary"]["success"]
     assert lines[-1] == (f"gsmn: no Table 1 evaluation: the control flies {extended['summary']['success']:.1f} % "
                          "on dev, below the recipe's gate of 101 % (docs/training.md)")
     assert _git(repo, "log", "-2", "--format=%s").splitlines() == [
@@ -255,10 +278,10 @@ def test_the_programme_resumes_from_its_committed_stage_after_losing_its_machine
         "table2: GSMN, dagger iteration 3 of 3 (stage copy for resuming)"]
     assert _git(repo, "status", "--porcelain") == ""
     # a kill between the evaluation and its flag in stage.json: the next start sets the flag, flying nothing
-    table2.write_stage(ship, {**table2.read_stage(ship), "evaluated": False})
+    programme.write_stage(ship, {**read_stage(ship), "evaluated": False})
     lines.clear()
     assert run_system(control, layout, longer, threads=1, log=lines.append) == extended
-    assert table2.read_stage(ship)["evaluated"] is True and not any("flying" in line for line in lines)
+    assert read_stage(ship)["evaluated"] is True and not any("flying" in line for line in lines)
 
 
 def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised_one(tmp_path):
@@ -269,7 +292,7 @@ def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised
     control: System = SYSTEMS[0]
     run_system(control, layout, recipe, threads=1, log=lambda s: None,
                stop_after=lambda stage, state: stage == "dagger" and state.epoch == 1)
-    assert table2.read_stage(layout.shipped(control))["stage"] == "supervised", "no DAggerFM copy yet"
+    assert read_stage(layout.shipped(control))["stage"] == "supervised", "no DAggerFM copy yet"
     shutil.rmtree(layout.out)
     assert data_needed(layout, recipe, [control]) == ("dev", "seed")
     lines: list[str] = []
@@ -280,7 +303,7 @@ def test_a_machine_lost_before_the_first_dagger_copy_resumes_from_the_supervised
         "collecting the DAggerFM seed data: 2 of 2 expert episodes to go, first ids first"]
     assert f"{control.name}: restoring supervised epoch 1 from {layout.shipped(control)}" in lines
     assert not (layout.data / "expert_train").exists()
-    assert table2._state_epoch(layout.run(control, "dagger")) == 1
+    assert programme._state_epoch(layout.run(control, "dagger")) == 1
 
 
 def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
@@ -293,36 +316,36 @@ def test_keep_latest_ships_a_further_epoch_and_never_an_older_one(tmp_path):
         (folder / "stage.json").write_text(json.dumps({"system": control.name, "stage": stage, "epoch": epoch,
                                                        "epochs": 16, "evaluated": False}))
 
-    assert table2.keep_latest(layout, [control]) == []  # nothing finished yet
+    assert programme.keep_latest(layout, [control]) == []  # nothing finished yet
     stage_folder(layout.shipped(control), "supervised", 4, b"epoch 4")
     stage_folder(layout.latest(control), "supervised", 6, b"epoch 6")
-    assert table2.keep_latest(layout, [control]) == [control.name]
+    assert programme.keep_latest(layout, [control]) == [control.name]
     ship = layout.shipped(control)
     assert (ship / "weights.safetensors").read_bytes() == b"epoch 6"
-    assert table2.read_stage(ship)["epoch"] == 6
+    assert read_stage(ship)["epoch"] == 6
     assert not list(ship.parent.glob(".*"))  # no temporary folder left
 
     shutil.rmtree(layout.latest(control))
     stage_folder(layout.latest(control), "supervised", 5, b"epoch 5")  # behind the stage copy: left alone
-    assert table2.keep_latest(layout, [control]) == []
+    assert programme.keep_latest(layout, [control]) == []
     assert (ship / "weights.safetensors").read_bytes() == b"epoch 6"
     shutil.rmtree(layout.latest(control))
     stage_folder(layout.latest(control), "dagger", 1, b"iteration 1")  # DAggerFM is further than any epoch
-    assert table2.keep_latest(layout, [control]) == [control.name]
-    assert table2.read_stage(ship)["stage"] == "dagger"
+    assert programme.keep_latest(layout, [control]) == [control.name]
+    assert read_stage(ship)["stage"] == "dagger"
 
     # an evaluated copy is up to date at the same iteration; one further on (a recipe extended since) replaces it
     # with its evaluations, which measured the older model
     (ship / "evaluation.json").write_text("{}")
     (ship / "table1.json").write_text("{}")
-    (ship / "stage.json").write_text(json.dumps({**table2.read_stage(ship), "evaluated": True}))
-    assert table2.keep_latest(layout, [control]) == []
-    assert (ship / "evaluation.json").is_file() and table2.read_stage(ship)["evaluated"] is True
+    (ship / "stage.json").write_text(json.dumps({**read_stage(ship), "evaluated": True}))
+    assert programme.keep_latest(layout, [control]) == []
+    assert (ship / "evaluation.json").is_file() and read_stage(ship)["evaluated"] is True
     shutil.rmtree(layout.latest(control))
     stage_folder(layout.latest(control), "dagger", 2, b"iteration 2")
-    assert table2.keep_latest(layout, [control]) == [control.name]
+    assert programme.keep_latest(layout, [control]) == [control.name]
     assert (ship / "weights.safetensors").read_bytes() == b"iteration 2"
-    assert table2.read_stage(ship)["evaluated"] is False
+    assert read_stage(ship)["evaluated"] is False
     assert not (ship / "evaluation.json").exists() and not (ship / "table1.json").exists()
 
 
@@ -331,7 +354,7 @@ def test_below_the_control_gate_no_table1_evaluation_flies(tmp_path, monkeypatch
     trained on under an extended recipe): none starts, and one under way stops before its next chunk."""
     layout = Layout(tmp_path / "runs", tmp_path / "ship")
     recipe = dataclasses.replace(RECIPES["tiny"], control_gate=60.0)
-    control, no_plan = table2.BY_NAME["gsmn"], table2.BY_NAME["no-plan"]
+    control, no_plan = BY_NAME["gsmn"], BY_NAME["no-plan"]
 
     def evaluated(system: System, success: float | None, epochs: int = recipe.iterations) -> None:
         ship = layout.shipped(system)
@@ -342,24 +365,24 @@ def test_below_the_control_gate_no_table1_evaluation_flies(tmp_path, monkeypatch
             (ship / "evaluation.json").write_text(json.dumps({"summary": {"success": success}}))
 
     evaluated(control, None)
-    assert table2.control_below_gate(layout, recipe) is None  # not yet known
+    assert programme.control_below_gate(layout, recipe) is None  # not yet known
     evaluated(control, 70.0)
-    assert table2.control_below_gate(layout, recipe) is None
+    assert programme.control_below_gate(layout, recipe) is None
     evaluated(control, 50.0, epochs=recipe.iterations + 1)  # another recipe's evaluation says nothing of this one
-    assert table2.control_below_gate(layout, recipe) is None
+    assert programme.control_below_gate(layout, recipe) is None
     evaluated(control, 50.0)
-    assert table2.control_below_gate(layout, recipe) == 50.0
+    assert programme.control_below_gate(layout, recipe) == 50.0
 
     evaluated(no_plan, 40.0)
-    assert table2.describe(layout, no_plan, recipe) == (
+    assert programme.describe(layout, no_plan, recipe) == (
         "evaluated on dev (the control is below the gate: no Table 1)", 1, 1)
 
     def no_flight(command, **kwargs):
         raise AssertionError(f"flew {command}")
 
-    monkeypatch.setattr(table2.subprocess, "run", no_flight)
+    monkeypatch.setattr(programme.subprocess, "run", no_flight)
     asked: list[bool] = []
-    assert table2.evaluate_system(no_plan, layout, recipe, threads=1, log=lambda s: None, split="test",
+    assert programme.evaluate_system(no_plan, layout, recipe, threads=1, log=lambda s: None, split="test",
                                   stop=lambda: asked.append(True) or True) is None
     assert asked == [True]
 
@@ -380,7 +403,7 @@ def test_a_running_system_goes_on_from_a_further_stage_copy_shipped_from_elsewhe
         if state.epoch == 1:  # meanwhile the other machine resumes from this epoch 1 and trains epochs 2 and 3
             assert run_system(control, elsewhere, recipe, threads=1, log=away.append,
                               stop_after=lambda stage, state: state.epoch == 3) is None
-            assert table2.read_stage(ship)["epoch"] == 3
+            assert read_stage(ship)["epoch"] == 3
         return state.epoch == 4
 
     lines: list[str] = []
@@ -395,7 +418,7 @@ def test_a_running_system_goes_on_from_a_further_stage_copy_shipped_from_elsewhe
     theirs = [json.loads(line) for line in (elsewhere.run(control, "supervised") / "log.jsonl").read_text()
               .splitlines()]
     assert [r["epoch"] for r in log] == [1, 2, 3, 4] and log[1:3] == theirs[1:3]
-    assert table2.read_stage(ship)["epoch"] == 4
+    assert read_stage(ship)["epoch"] == 4
     assert (ship / "run" / "log.jsonl").read_text() == (here.run(control, "supervised") / "log.jsonl").read_text()
 
 
@@ -420,22 +443,22 @@ def test_a_second_system_collecting_the_seed_data_flies_it_from_the_last_id(tmp_
 
         def write_json(path, value):  # what the programme's bar shows once the file is written
             real_write_json(path, value)
-            seen.append(table2.describe(layout, SYSTEMS[0], recipe))
+            seen.append(programme.describe(layout, SYSTEMS[0], recipe))
 
         real_write_json = evaluation.write_json
         monkeypatch.setattr(evaluation, "write_json", write_json)
-        table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append, progress=progress)
+        programme.collect_store(layout, recipe, "seed", workers=1, log=lines.append, progress=progress)
         assert lines == ["collecting the DAggerFM seed data: 2 of 2 expert episodes to go, last ids first"]
         assert seen == [("collecting the DAggerFM seed data", n, 2) for n in (0, 1, 2)] and not progress.exists()
-        assert sorted(store.keys()) == [f"env_{e:06d}" for e in table2.environments(recipe)["seed"]]
+        assert sorted(store.keys()) == [f"env_{e:06d}" for e in environments(recipe)["seed"]]
     finally:
         holder.kill()
         holder.wait()
     lines.clear()
-    table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append)
+    programme.collect_store(layout, recipe, "seed", workers=1, log=lines.append)
     assert lines == [], "nothing left to collect"
     store.path(store.keys()[0]).unlink()
-    table2.collect_store(layout, recipe, "seed", workers=1, log=lines.append)  # its holder is gone: the lock is free
+    programme.collect_store(layout, recipe, "seed", workers=1, log=lines.append)  # its holder is gone: the lock is free
     assert lines == ["collecting the DAggerFM seed data: 1 of 2 expert episodes to go, first ids first"]
 
 
@@ -448,7 +471,7 @@ def test_a_row_not_yet_measured_says_where_its_system_stands(tmp_path):
     stage("gsmn", stage="dagger", epoch=7, epochs=15)
     stage("no-plan", stage="dagger", epoch=15, epochs=15)
     stage("no-ground", stage="supervised", epoch=8, epochs=16)
-    table, table1 = table2.table_markdown(tmp_path), table2.table1_markdown(tmp_path)
+    table, table1 = table_markdown(tmp_path), table1_markdown(tmp_path)
     assert "| GSMN | not yet (DAggerFM iteration 7 of 15) |" in table
     assert "| GSMN without J_plan | not yet (trained, not evaluated) |" in table
     assert "| GSMN without J_ground | not yet (supervised epoch 8 of 16) |" in table
@@ -470,13 +493,13 @@ def test_table1_rows_stand_beside_the_papers_with_the_paired_comparison(tmp_path
 
     kept("gsmn", [True, True, True, False])
     kept("no-plan", [False, False, True, True])
-    lines = table2.table1_markdown(tmp_path).splitlines()
+    lines = table1_markdown(tmp_path).splitlines()
     assert lines[2] == ("| GSMN, Table 2's recipe (`checkpoints/table2/gsmn`) | 75.00 (75.00) | 83.47 (87.21) | "
                         "50.00 (50.00) | 89.33 (93.38) | 3.00 (3.00) | 2.67 (2.24) | 2.00 (2.00) | 1.21 (1.12) |")
     assert lines[3].startswith("| GSMN without J_plan, Table 2's recipe (`checkpoints/table2/no-plan`) | 50.00 "
                                "(50.00) | 69.89 (71.03) |")
     assert lines[-1] == ("GSMN without J_plan against GSMN, paired over the same 4 environments: 1 fixed / 2 broken, "
-                         f"sign test p {table2.sign_test(1, 2):.2g}")
+                         f"sign test p {sign_test(1, 2):.2g}")
 
 
 def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, monkeypatch):
@@ -489,8 +512,8 @@ def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, mon
     (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": 2, "epochs": 2,
                                                  "evaluated": False}))
     recipe = dataclasses.replace(RECIPES["tiny"], eval_envs=3)
-    ids = table2.environments(recipe)["eval"]
-    monkeypatch.setattr(table2, "EVAL_CHUNK", 2)
+    ids = environments(recipe)["eval"]
+    monkeypatch.setattr(programme, "EVAL_CHUNK", 2)
     flights: list[list[str]] = []
     run = subprocess.run
 
@@ -500,24 +523,24 @@ def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, mon
             raise KeyboardInterrupt
         return run(command, **kwargs)
 
-    monkeypatch.setattr(table2.subprocess, "run", lost_after_one_chunk)
+    monkeypatch.setattr(programme.subprocess, "run", lost_after_one_chunk)
     lines: list[str] = []
     try:
-        table2.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
+        programme.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
         raise AssertionError("the second chunk should not have flown")
     except KeyboardInterrupt:
         pass
-    kept = json.loads(table2.partial_path(ship, "dev").read_text())
+    kept = json.loads(partial_path(ship, "dev").read_text())
     assert kept["env_ids"] == ids and [e["env_id"] for e in kept["episodes"]] == ids[:2]
     assert all("trajectory" not in e and "stage" in e for e in kept["episodes"])
-    assert table2.pending(ship) == "not yet (2 of 3 dev environments flown)"
-    assert table2.describe(layout, control, recipe) == ("evaluating on dev", 2, 3)
+    assert pending(ship) == "not yet (2 of 3 dev environments flown)"
+    assert programme.describe(layout, control, recipe) == ("evaluating on dev", 2, 3)
 
     shutil.rmtree(layout.out)  # the machine is lost
-    monkeypatch.setattr(table2.subprocess, "run", run)
+    monkeypatch.setattr(programme.subprocess, "run", run)
     lines.clear()
-    result = table2.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
-    assert lines == [f"gsmn: 2 of 3 dev environments kept in {table2.partial_path(ship, 'dev')}",
+    result = programme.evaluate_system(control, layout, recipe, threads=1, log=lines.append)
+    assert lines == [f"gsmn: 2 of 3 dev environments kept in {partial_path(ship, 'dev')}",
                      "gsmn: flying 1 dev environments (2 of 3 done)"]
     assert [e["env_id"] for e in result["episodes"]] == ids and result["episodes"][:2] == kept["episodes"]
     assert result["summary"]["count"] == 3
@@ -526,8 +549,8 @@ def test_an_evaluation_keeps_its_finished_chunks_for_a_new_machine(tmp_path, mon
     # a partial evaluation of another stage copy (a recipe extended since) is not reused
     (ship / "stage.json").write_text(json.dumps({"system": "gsmn", "stage": "dagger", "epoch": 3, "epochs": 3,
                                                  "evaluated": False}))
-    assert table2.kept_partial(ship, "dev", ids) == {"episodes": []}
-    assert table2.pending(ship) == "not yet (trained, not evaluated)"
+    assert kept_partial(ship, "dev", ids) == {"episodes": []}
+    assert pending(ship) == "not yet (trained, not evaluated)"
 
 
 def test_the_programme_ends_when_the_control_is_below_the_gate(tmp_path, monkeypatch):
@@ -552,11 +575,11 @@ def test_the_programme_ends_when_the_control_is_below_the_gate(tmp_path, monkeyp
         def poll(self):
             return 0
 
-    monkeypatch.setattr(table2.subprocess, "Popen", Finished)
-    assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
+    monkeypatch.setattr(programme.subprocess, "Popen", Finished)
+    assert programme.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
     assert started == ["gsmn", "no-plan"]
     # started again: the control is done (not restarted) and its gate holds at once
-    assert table2.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
+    assert programme.run_programme(layout, recipe, "tiny", list(SYSTEMS)) == 1
     assert started == ["gsmn", "no-plan"]
 
 
@@ -571,7 +594,7 @@ def test_the_orderings_pair_the_ablations_and_split_what_each_breaks(tmp_path):
         (tmp_path / name).mkdir()
         (tmp_path / name / "evaluation.json").write_text(json.dumps({"system": name, "episodes": episodes}))
 
-    assert table2.orderings_markdown(tmp_path).startswith("Orderings: not yet")
+    assert orderings_markdown(tmp_path).startswith("Orderings: not yet")
     kept("gsmn", "+++++-", "goal")
     kept("no-plan", "+-+++-", "perception_or_grounding goal")  # first in SYSTEMS, the smaller drop: ranked second
     kept("no-percept", "--+++-", "goal perception goal")
@@ -579,7 +602,7 @@ def test_the_orderings_pair_the_ablations_and_split_what_each_breaks(tmp_path):
     (tmp_path / "no-lang" / "evaluation.json").write_text(json.dumps({"episodes": [
         {"env_id": 85 + i, "success": i > 0, "stage": None} for i in range(5)]}))  # flown without attribution
     kept("pose-noise", "------", "goal " * 6)
-    lines = table2.orderings_markdown(tmp_path).splitlines()
+    lines = orderings_markdown(tmp_path).splitlines()
     assert lines == [
         "Ablations by success rate, the largest drop first (control 83.3 %): GSMN without J_percept (50.0 %), "
         "GSMN without J_plan (66.7 %), GSMN without J_lang (80.0 %)",

@@ -9,9 +9,9 @@ from fastapi import FastAPI
 from pydantic import BaseModel, Field
 
 from app.api.episodes import EpisodeCreated, EpisodeSummary, summary
+from app.api.schema import EnvId, Strict, Text, path_id, responses
 from app.live.commands import NotFound
 from app.live.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
-from app.api.schema import EnvId, Strict, Text, path_id, responses
 
 COMMAND_TIMEOUT = 60.0
 MAX_STEP = 100_000
@@ -76,7 +76,7 @@ def add_compare_routes(app: FastAPI, runner) -> None:
 
     @app.get("/api/comparisons", response_model=list[ComparisonModel], summary="Comparisons kept in memory")
     def list_comparisons() -> list[ComparisonModel]:
-        return [answer(c) for c in list(runner._comparison_store().values())]
+        return [answer(c) for c in list(runner.pairs.store.values())]
 
     @app.get("/api/comparisons/{comparison_id}", response_model=ComparisonModel, responses=responses(404, 422),
              summary="Both episodes' status and results, and the step at which they part")

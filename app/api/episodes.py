@@ -22,13 +22,13 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.render.colors import png_bytes, upscale
-from app.live.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
+from app.api.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
 from app.jobs.db import RecordError
-from app.render.layers import LAYERS, map_layers
+from app.live.commands import MAX_ENV_ID, CancelEpisode, Ground, Grounding, NotFound, RunnerError, StartEpisode
 from app.live.recording import Episode, EpisodeResult
 from app.live.runner import Runner
-from app.api.schema import ACCESS, EnvId, Id, Strict, Text, path_id, plain_errors, responses, safe_text
+from app.render.colors import png_bytes, upscale
+from app.render.layers import LAYERS, map_layers
 from app.render.truth import TRUTH_LAYERS, episode_truth, step_figures, truth_rgb, went_wrong
 from gsmn.model.heads import positive_probability
 

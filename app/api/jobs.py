@@ -11,12 +11,12 @@ from typing import Annotated, Literal
 from fastapi import FastAPI, Query
 from pydantic import BaseModel, Field
 
-from app.live.commands import NotFound, RunnerError, StartEpisode
+from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
 from app.jobs.settings import MAX_ROLLOUTS, run_settings
+from app.live.commands import NotFound, RunnerError, StartEpisode
 from app.live.runner import Runner
-from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from gsmn.attribution import STAGES
 
 COMMAND_TIMEOUT = 60.0

@@ -9,9 +9,9 @@ from fastapi import FastAPI, Query
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
-from app.live.commands import Conflict, NotFound, RunnerError
-from app.jobs.kept import OUTCOMES, row_summary, search
 from app.api.schema import MAX_ID, Strict, Text, path_id, responses
+from app.jobs.kept import OUTCOMES, row_summary, search
+from app.live.commands import Conflict, NotFound, RunnerError
 
 EpisodeId = Annotated[int, path_id("episode")]
 MAX_TIME = 1e11  # unix seconds, year 5138

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from app.live.commands import RunnerListener
 from app.jobs.db import Database
+from app.live.commands import RunnerListener
 from app.live.recording import (
     CANCELLED,
     FAILED,

@@ -40,11 +40,11 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from app.live.commands import Forbidden, NotFound, RunnerError, TooLarge
 from app.jobs.db import FINISHED, Database, Evaluation, Run
 from app.jobs.results import EpisodeRecorder, compare, summarize_rows
 from app.jobs.settings import DEV_EPISODES, RunSettings, expert_store_key, run_config
 from app.jobs.supervisor import Handle, Supervisor, alive
+from app.live.commands import Forbidden, NotFound, RunnerError, TooLarge
 from gsmn.config import RunConfig
 
 log = logging.getLogger("gsmn.dashboard")

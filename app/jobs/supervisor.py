@@ -23,8 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.live.commands import Conflict, RunnerError
 from app.jobs.db import ACTIVE, CANCELLED, FAILED, FINISHED, QUEUED, RUNNING, Database, Evaluation, RecordError, Run
+from app.live.commands import Conflict, RunnerError
 
 log = logging.getLogger("gsmn.dashboard")
 

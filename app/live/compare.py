@@ -25,19 +25,16 @@ import time
 import traceback
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from app.live.commands import Command, Conflict, NotFound, RunnerError
+from app.live.commands import POLICIES, Command, Conflict, NotFound, RunnerError
+from app.live.flight import Flight, Unwind, task_for_text
 from app.live.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
 from gsmn.task.fork import FlightSnapshots, Prefix
-from gsmn.task.instructions import InstructionError, parse_instruction
 from gsmn.task.rollout import Task, rollout_steps
-
-if TYPE_CHECKING:
-    from app.live.runner import Flight
 
 log = logging.getLogger("gsmn.dashboard")
 PART_DISTANCE = 1.0  # m: two drones further apart than this have parted
@@ -122,54 +119,73 @@ def diverged_at(pos_a, stop_a, live_a: bool, pos_b, stop_b, live_b: bool,
 
 
 # -- the runner's part ----------------------------------------------------------------------------------------
-class ComparingRunner:
-    """The commands and the paired flight of `app.live.runner.Runner` for comparisons and forks (a mixin: the runner
-    thread calls these like its own `_do_*` handlers)."""
+class Comparisons:
+    """Comparisons and forks for `app.live.runner.Runner`, which holds one: their commands (the runner dispatches
+    `StartComparison` and `ForkEpisode` to `do_*`) and the paired flight, all on the runner thread, with the
+    runner's queue, simulator and step pacing."""
 
-    comparisons: OrderedDict[int, Comparison]
-    live_comparison: Comparison | None = None
+    def __init__(self, runner):
+        self.runner = runner
+        self.store: OrderedDict[int, Comparison] = OrderedDict()
+        self.live: Comparison | None = None
+        self._next = 1
 
-    def _comparison_store(self) -> OrderedDict[int, Comparison]:
-        if not hasattr(self, "comparisons"):
-            self.comparisons = OrderedDict()
-            self._next_comparison = 1
-        return self.comparisons
+    def pending_pair(self, episode: Episode) -> Comparison | None:
+        return next((c for c in self.runner._pending if isinstance(c, Comparison) and episode in c.episodes), None)
 
-    def comparison(self, comparison_id: int) -> Comparison | None:
-        return self._comparison_store().get(comparison_id)
-
-    def _pending_pair(self, episode: Episode) -> Comparison | None:
-        return next((c for c in self._pending if isinstance(c, Comparison) and episode in c.episodes), None)
-
-    def _flying_in_pair(self, episode: Episode) -> bool:
-        return self.live_comparison is not None and episode in self.live_comparison.episodes
+    def flying(self, episode: Episode) -> bool:
+        return self.live is not None and episode in self.live.episodes
 
     # -- commands ---------------------------------------------------------------------------------------------
-    def _do_StartComparison(self, c: StartComparison) -> Comparison:
+    def do_StartComparison(self, c: StartComparison) -> Comparison:
+        r = self.runner
         if len(c.policies) != 2:
             raise RunnerError(f"a comparison flies two policies, got {len(c.policies)}")
         if not c.preempt:
-            self._check_queue()
-        episodes = tuple(self._new_episode(c.env_id, spec.instruction or c.instruction, spec.policy,
-                                           spec.checkpoint) for spec in c.policies)
-        store = self._comparison_store()
-        comparison = Comparison(self._next_comparison, episodes)
-        self._next_comparison += 1
+            r._check_queue()
+        episodes = tuple(r._new_episode(c.env_id, spec.instruction or c.instruction, spec.policy,
+                                        spec.checkpoint) for spec in c.policies)
+        comparison = Comparison(self._next, episodes)
+        self._next += 1
         for e in episodes:
             e.comparison = comparison.id
-            self.episodes.add(e)
-        store[comparison.id] = comparison
-        while len(store) > MAX_COMPARISONS:
-            store.popitem(last=False)
-        self._enqueue(c, comparison, comparison)
+            r.episodes.add(e)
+        self.store[comparison.id] = comparison
+        while len(self.store) > MAX_COMPARISONS:
+            self.store.popitem(last=False)
+        r._enqueue(c, comparison, comparison)
         return comparison
 
-    def _do_ForkEpisode(self, c: ForkEpisode) -> Episode:
-        from app.live.runner import POLICIES, _straight_task
+    def do_ForkEpisode(self, c: ForkEpisode) -> Episode:
+        r = self.runner
+        original, n = self._forkable(c.episode_id)
+        if not 0 <= c.step < n:
+            raise RunnerError(f"step {c.step} is not recorded: episode {original.id} has steps 0 to {n - 1}")
+        policy = c.policy or original.policy
+        if policy not in POLICIES:
+            raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
+        if c.instruction is None or not c.instruction.strip() or c.instruction.strip() == original.instruction:
+            task = original.task
+        else:
+            task = task_for_text(original.task.world, c.instruction, r.config)
+        checkpoint = c.checkpoint
+        if checkpoint is None and original.checkpoint is not None and original.checkpoint in r.models:
+            checkpoint = original.checkpoint
+        # checked with the original's instruction (whose path exists); the fork's own task replaces it
+        episode = r._new_episode(original.env_id, original.instruction, policy, checkpoint, check_queue=not c.preempt)
+        episode.task = task
+        episode.fork = self._fork_point(original, episode, c.step)
+        episode.steps = list(original.steps[:c.step])
+        r.episodes.add(episode)
+        r._enqueue(c, episode, episode)
+        return episode
 
-        original = self.episodes.get(c.episode_id)
+    def _forkable(self, episode_id: int) -> tuple[Episode, int]:
+        """The episode to fork, and how many of its steps have a simulator state to start from."""
+        episodes = self.runner.episodes
+        original = episodes.get(episode_id)
         if original is None:
-            raise NotFound(self.episodes.missing(c.episode_id))
+            raise NotFound(episodes.missing(episode_id))
         if original.live:
             raise Conflict(f"episode {original.id} is {original.status}: fork it once it has ended")
         snapshots: FlightSnapshots | None = original.snapshots
@@ -178,120 +194,105 @@ class ComparingRunner:
             raise Conflict(f"episode {original.id} has no recorded state to fork from: the simulator states a fork "
                            f"starts from are kept in memory only, so an episode kept from before a restart cannot be "
                            f"forked; fly it again and fork that")
-        if not 0 <= c.step < n:
-            raise RunnerError(f"step {c.step} is not recorded: episode {original.id} has steps 0 to {n - 1}")
-        policy = c.policy or original.policy
-        if policy not in POLICIES:
-            raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
-        world = original.task.world
-        if c.instruction is None or not c.instruction.strip() \
-                or c.instruction.strip() == original.instruction:
-            instruction, task = original.task.instruction, original.task
-        else:
-            try:
-                instruction = parse_instruction(c.instruction, world)
-            except InstructionError as e:
-                raise RunnerError(str(e)) from e
-            try:
-                task = Task(world, instruction, demonstration_path(world, instruction.goal, self.config.expert))
-            except DemoPathError:
-                task = _straight_task(world, instruction, self.config.expert.waypoint_spacing)
-        same_instruction = instruction.text == original.instruction
-        checkpoint = c.checkpoint
-        if checkpoint is None and original.checkpoint is not None and original.checkpoint in self.models:
-            checkpoint = original.checkpoint
-        # checked with the original's instruction (whose path exists); the fork's own task replaces it
-        episode = self._new_episode(original.env_id, original.instruction, policy, checkpoint,
-                                    check_queue=not c.preempt)
-        episode.task = task
+        return original, n
+
+    def _fork_point(self, original: Episode, episode: Episode, t: int) -> ForkPoint:
+        """Where `episode` (a fork of `original` at step `t`) starts, and how much of the original's state applies."""
+        policy, task, snapshots = episode.policy, episode.task, original.snapshots
         plain = ("model", "expert")  # the expert flies with the plain model watching
         same_model = (episode.checkpoint is not None and episode.checkpoint == original.checkpoint
                       and (policy == original.policy or (policy in plain and original.policy in plain)))
-        t = c.step
         expert_task, same_expert = None, False
         if policy == "expert":
             prior = original.fork.expert_task if original.fork is not None else None
+            same_instruction = task.instruction.text == original.instruction
             if same_instruction and original.policy == "expert" and snapshots.has_expert_progress(t):
                 expert_task, same_expert = prior or original.task, True
             else:
-                expert_task = _expert_task_from(original, t, task, self.config)
+                expert_task = _expert_task_from(original, t, task, self.runner.config)
         steps = original.steps[:t]
         prefix = Prefix(tuple((s.position[0], s.position[1], s.position[2], s.yaw) for s in steps),
                         tuple((s.v, s.omega, s.stop) for s in steps), tuple(s.stop_probability for s in steps),
                         tuple(None for _ in steps))
-        episode.fork = ForkPoint(original.id, t, snapshots, prefix, same_model, same_expert, expert_task)
-        episode.steps = list(steps)
-        self.episodes.add(episode)
-        self._enqueue(c, episode, episode)
-        return episode
+        return ForkPoint(original.id, t, snapshots, prefix, same_model, same_expert, expert_task)
 
     # -- flying a pair ----------------------------------------------------------------------------------------
-    def _fly_pair(self, comparison: Comparison) -> None:
-        from app.live.runner import _Unwind
-
-        flights: list[Flight] = [self._flight(e) for e in comparison.episodes]
-        radius = self.config.task.success_radius
-        gens = []
-        for f in flights:
-            f.episode.snapshots = FlightSnapshots()
-            gens.append(rollout_steps(self.env, f.policy, f.episode.task, f.episode.horizon,
-                                      on_step=lambda obs, action, f=f: self._on_step(f.episode, obs, action, f,
-                                                                                     pace=False),
-                                      success_radius=radius))
+    def fly(self, comparison: Comparison) -> None:
+        """Fly a comparison's two episodes in the runner's one simulator, a step of each in turn."""
+        r = self.runner
+        flights: list[Flight] = [r._flight(e) for e in comparison.episodes]
+        gens = [self._steps(f) for f in flights]
         states: list[Any] = [None, None]
         done = [False, False]
-        self.live, self.live_comparison = comparison.episodes[0], comparison
-        self.paused = comparison.episodes[0].start_paused
-        self._step_budget = 0
-        self._last_step = 0.0
-        for f in flights:
-            f.episode.status = PAUSED if self.paused else RUNNING
-            f.episode.started = time.perf_counter()
-            self._notify("on_episode_start", f.episode)
+        self._begin(comparison, flights)
         try:
             while not all(done):
                 for i, f in enumerate(flights):
-                    if done[i]:
-                        continue
-                    if states[i] is not None:
-                        self.env.set_state(states[i])
-                    try:
-                        next(gens[i])
-                        states[i] = self.env.get_state()
-                    except StopIteration as stop:
-                        done[i] = True
-                        last = f.episode.steps[-1] if f.episode.steps else None
-                        f.episode.result = EpisodeResult.of(stop.value,
-                                                            last.decisive_stop_probability if last else None)
-                        f.episode.status = FINISHED
-                        f.episode.finished = time.perf_counter()
-                    except _Unwind:
-                        raise
-                    except Exception as e:  # noqa: BLE001 - one episode fails, the other flies on
-                        log.error("episode %d failed:\n%s", f.episode.id, traceback.format_exc())
-                        done[i] = True
-                        f.episode.status, f.episode.error = FAILED, f"{type(e).__name__}: {e}"
-                        f.episode.finished = time.perf_counter()
+                    if not done[i]:
+                        done[i] = self._step(f, gens[i], states, i)
                 if not all(done):
                     live = next(f.episode for f, d in zip(flights, done, strict=True) if not d)
-                    self._between_steps(live)
+                    r._between_steps(live)
                     for f, d in zip(flights, done, strict=True):  # pause and resume show on both
                         if not d:
-                            f.episode.status = PAUSED if self.paused else RUNNING
-        except _Unwind:
+                            f.episode.status = PAUSED if r.paused else RUNNING
+        except Unwind:
             for f in flights:
                 if f.episode.status in LIVE:
                     f.episode.status = CANCELLED
         finally:
             for g in gens:
                 g.close()
-            for f in flights:
-                if f.episode.finished is None:
-                    f.episode.finished = time.perf_counter()
-            self.live, self.live_comparison = None, None
-            self.paused = False
-            for f in flights:
-                self._notify("on_episode_end", f.episode)
+            self._end(flights)
+
+    def _steps(self, f: Flight):
+        r = self.runner
+        f.episode.snapshots = FlightSnapshots()
+        return rollout_steps(r.env, f.policy, f.episode.task, f.episode.horizon,
+                             on_step=lambda obs, action: r._on_step(f.episode, obs, action, f, pace=False),
+                             success_radius=r.config.task.success_radius)
+
+    def _begin(self, comparison: Comparison, flights: list[Flight]) -> None:
+        r = self.runner
+        r.live, self.live = comparison.episodes[0], comparison
+        r.paused = comparison.episodes[0].start_paused
+        r._step_budget = 0
+        r._last_step = 0.0
+        for f in flights:
+            f.episode.status = PAUSED if r.paused else RUNNING
+            f.episode.started = time.perf_counter()
+            r._notify("on_episode_start", f.episode)
+
+    def _step(self, f: Flight, gen, states: list[Any], i: int) -> bool:
+        """One step of one of the pair, from its own simulator state; True when its episode has ended."""
+        env = self.runner.env
+        if states[i] is not None:
+            env.set_state(states[i])
+        try:
+            next(gen)
+            states[i] = env.get_state()
+            return False
+        except StopIteration as stop:
+            last = f.episode.steps[-1] if f.episode.steps else None
+            f.episode.result = EpisodeResult.of(stop.value, last.decisive_stop_probability if last else None)
+            f.episode.status = FINISHED
+        except Unwind:
+            raise
+        except Exception as e:  # noqa: BLE001 - one episode fails, the other flies on
+            log.error("episode %d failed:\n%s", f.episode.id, traceback.format_exc())
+            f.episode.status, f.episode.error = FAILED, f"{type(e).__name__}: {e}"
+        f.episode.finished = time.perf_counter()
+        return True
+
+    def _end(self, flights: list[Flight]) -> None:
+        r = self.runner
+        for f in flights:
+            if f.episode.finished is None:
+                f.episode.finished = time.perf_counter()
+        r.live, self.live = None, None
+        r.paused = False
+        for f in flights:
+            r._notify("on_episode_end", f.episode)
 
 
 def _expert_task_from(original: Episode, t: int, task: Task, config) -> Task:

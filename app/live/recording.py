@@ -8,6 +8,7 @@ index it without a lock; the store's dictionary is guarded by a lock.
 
 from __future__ import annotations
 
+import io
 import threading
 import time
 from collections import OrderedDict
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from gsmn.task.metrics import side_of
 from gsmn.task.rollout import EpisodeRecord, Task
@@ -193,3 +195,9 @@ class EpisodeStore:
     def __len__(self) -> int:
         with self._lock:
             return len(self._episodes)
+
+
+def jpeg_bytes(image: np.ndarray, quality: int = 85) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()

@@ -6,8 +6,8 @@ episode flies, and pause, single step, cancel and counterfactual grounding all t
 fly through `gsmn.task.rollout.rollout`, the one rollout function evaluation and data collection use; its
 `on_step` callback records each step (`app.live.recording`) and tells the listeners (the viewer).
 
-A model "watches" every episode when a checkpoint is loaded: flying itself, or beside the expert, whose
-episodes then show what the model would have mapped, grounded and done.
+The runner holds its checkpoints (`app.live.models.Checkpoints`) and its comparisons and forks
+(`app.live.compare.Comparisons`); what flies an episode is `app.live.flight`.
 """
 
 from __future__ import annotations
@@ -18,16 +18,13 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from app.render.colors import jpeg_bytes
 from app.live.commands import (
     MAX_ENV_ID,
     MAX_QUEUED,
@@ -50,8 +47,9 @@ from app.live.commands import (
     StepOnce,
     WorldShown,
 )
-from app.live.compare import ComparingRunner, Comparison
-from app.render.layers import NOT_KEPT, MapHeads
+from app.live.compare import Comparison, Comparisons
+from app.live.flight import Flight, Unwind, flight_for, instruction_for_text, step_maps, task_for_text
+from app.live.models import Checkpoints, LoadedModel
 from app.live.recording import (
     CANCELLED,
     FAILED,
@@ -61,68 +59,22 @@ from app.live.recording import (
     Episode,
     EpisodeResult,
     EpisodeStore,
-    StepMaps,
     StepRecord,
+    jpeg_bytes,
 )
 from gsmn.config import RunConfig
 from gsmn.task.baselines import ExpertPolicy
-from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.demo import DemoPathError
 from gsmn.task.fork import FlightSnapshots
-from gsmn.task.instructions import Instruction, InstructionError, parse_instruction
-from gsmn.task.rollout import PolicyAction, RolloutStart, Task, rollout, task_for_env
+from gsmn.task.instructions import InstructionError
+from gsmn.task.rollout import PolicyAction, RolloutStart, rollout, task_for_env
 from gsmn.world.assets import load_catalogue
 from gsmn.world.env import Env, Observation
-from gsmn.world.spec import WorldSpec, world_for_env
+from gsmn.world.spec import world_for_env
 
 log = logging.getLogger("gsmn.dashboard")
 
-class _Unwind(Exception):
-    """Raised inside a live episode's step callback to end it early (cancel, preempt, another world, close)."""
-
-
-@dataclass
-class LoadedModel:
-    name: str
-    path: Path
-    policy: Any  # gsmn.model.policy.ModelPolicy
-    heads: MapHeads
-    meta: dict
-
-
-class WatchedPolicy:
-    """The expert flies while the model watches (acts on every observation but is not obeyed), so an
-    expert episode shows the model's maps too."""
-
-    needs_images = True
-
-    def __init__(self, actor, watcher):
-        self.actor, self.watcher = actor, watcher
-        self.name = actor.name
-
-    def reset(self, task: Task) -> None:
-        self.actor.reset(task)
-        self.watcher.reset(task)
-
-    def act(self, obs: Observation) -> PolicyAction:
-        self.watcher.act(obs)
-        return self.actor.act(obs)
-
-
-def _straight_task(world: WorldSpec, instruction: Instruction, spacing: float) -> Task:
-    return Task(world, instruction, resample(np.stack([world.start_position, instruction.goal]), spacing))
-
-
-# -- the runner -----------------------------------------------------------------------------------------------
-def checkpoint_label(name: str, path: Path) -> str:
-    """A readable name: a Table 2 system's label and where its programme stands (`gsmn experiment table2`), else
-    the checkpoint's name."""
-    from gsmn.experiments.table2 import describe_stage, read_stage
-
-    stage = read_stage(path)
-    return describe_stage(stage, path) if stage else name
-
-
-class Runner(ComparingRunner):
+class Runner:
     """Owns Env, renderer and policies on one thread. `checkpoint`: a folder, or a name under
     `checkpoints_root`; `require_checkpoint` makes a missing one an error instead of a message."""
 
@@ -131,15 +83,10 @@ class Runner(ComparingRunner):
                  episodes: EpisodeStore | None = None):
         self.config = config
         self.max_queued = max_queued
-        self.checkpoints_root = Path(checkpoints_root)
-        self.default_ref = str(checkpoint) if checkpoint is not None else None
-        self.require_checkpoint = require_checkpoint
+        self.checkpoints = Checkpoints(config, checkpoints_root, checkpoint, require_checkpoint)
+        self.pairs = Comparisons(self)
         self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)  # app.jobs.kept.KeptStore
         self.listeners: list[RunnerListener] = []
-        self.models: dict[str, LoadedModel] = {}  # by resolved path
-        self.extra_checkpoints: Callable[[], dict[str, Path]] | None = None  # e.g. fine-tuning runs', by name
-        self.default_model: str | None = None  # key into self.models
-        self.checkpoint_message = ""
         self.speed: float | None = None
         self.shown: WorldShown | None = None
         self.live: Episode | None = None
@@ -180,49 +127,33 @@ class Runner(ComparingRunner):
             self.thread.join(timeout)
 
     @property
+    def models(self) -> dict[str, LoadedModel]:
+        """The models loaded, by their checkpoint's resolved path."""
+        return self.checkpoints.models
+
+    @property
+    def default_model(self) -> str | None:
+        return self.checkpoints.default
+
+    @property
+    def checkpoint_message(self) -> str:
+        return self.checkpoints.message
+
+    @property
     def has_model(self) -> bool:
-        return self.default_model is not None
+        return self.checkpoints.default is not None
 
     def checkpoint_list(self) -> list[CheckpointInfo]:
-        """Checkpoint folders under checkpoints_root, the default one, and any loaded."""
-        import json
+        return self.checkpoints.listing()
 
-        found: dict[str, Path] = {}
-        if self.checkpoints_root.is_dir():
-            for meta in sorted(self.checkpoints_root.glob("*/meta.json")):
-                found[meta.parent.name] = meta.parent
-            for meta in sorted(self.checkpoints_root.glob("*/*/meta.json")):  # a group, e.g. table2/no-ground
-                if not (meta.parent.parent / "meta.json").is_file():
-                    found[f"{meta.parent.parent.name}/{meta.parent.name}"] = meta.parent
-        if self.default_ref is not None and self.default_ref not in found:
-            path = self._path_of(self.default_ref)  # e.g. a folder given by its path: listed once, by its name
-            if path.is_dir() and path.resolve() not in {p.resolve() for p in found.values()}:
-                found[self.default_ref] = path
-        for name, path in (self.extra_checkpoints() if self.extra_checkpoints else {}).items():
-            found.setdefault(name, path)
-        known = {p.resolve() for p in found.values()}
-        for m in self.models.values():
-            if m.path.resolve() not in known:
-                found.setdefault(m.name, m.path)
-        default_key = self.default_model
-        out = []
-        for name, path in found.items():
-            key = str(path.resolve())
-            try:
-                meta = json.loads((path / "meta.json").read_text())
-                error = None
-            except (OSError, ValueError) as e:
-                meta, error = {}, f"meta.json unreadable: {e}"
-            out.append(CheckpointInfo(name=name, path=str(path), kind=meta.get("kind"), created=meta.get("created"),
-                                      loaded=key in self.models, default=key == default_key, error=error,
-                                      metrics=meta.get("metrics") or {}, label=checkpoint_label(name, path)))
-        return out
+    def comparison(self, comparison_id: int) -> Comparison | None:
+        return self.pairs.store.get(comparison_id)
 
     # -- the thread -------------------------------------------------------------------------------------------
     def _main(self) -> None:
         try:
             self.env = Env(self.config, load_catalogue())
-            self._load_default()
+            self.checkpoints.load_default()
             self._ready.set_result(True)
         except BaseException as e:  # noqa: BLE001 - reported to whoever waits in start()
             self._ready.set_exception(e)
@@ -231,7 +162,7 @@ class Runner(ComparingRunner):
             while not self._closing:
                 if self._pending:
                     item = self._pending.popleft()
-                    self._fly_pair(item) if isinstance(item, Comparison) else self._fly(item)
+                    self.pairs.fly(item) if isinstance(item, Comparison) else self._fly(item)
                     continue
                 command = self._commands.get()
                 if command is None:
@@ -262,12 +193,13 @@ class Runner(ComparingRunner):
                 log.error("listener %s.%s failed:\n%s", type(listener).__name__, method, traceback.format_exc())
 
     def _handle(self, command: Command) -> None:
-        """Do one command and answer its future. Inside a live episode it may raise _Unwind (after answering)."""
-        handler = getattr(self, "_do_" + type(command).__name__)
+        """Do one command and answer its future. Inside a live episode it may raise Unwind (after answering)."""
+        name = type(command).__name__
+        handler = getattr(self, "_do_" + name, None) or getattr(self.pairs, "do_" + name)
         self._origin = command.origin
         try:
             result = handler(command)
-        except _Unwind:
+        except Unwind:
             raise
         except RunnerError as e:
             command.future.set_exception(e)
@@ -277,88 +209,6 @@ class Runner(ComparingRunner):
         else:
             if not command.future.done():
                 command.future.set_result(result)
-
-    # -- checkpoints ------------------------------------------------------------------------------------------
-    def _path_of(self, ref: str) -> Path:
-        """A bare name is a folder under checkpoints_root (unless only ./name is a checkpoint) or an extra
-        checkpoint's name; else a path, which must lie under checkpoints_root or be one this dashboard was started
-        with or offers (`_offered`): a request cannot point it at any folder of the machine, and the refusal says
-        the same whether the folder exists or not."""
-        if not ref.strip():
-            raise RunnerError("checkpoint is empty: name one (e.g. gsmn, table2/no-ground, run-3), or leave it out "
-                              "for the default")
-        extra = self.extra_checkpoints() if self.extra_checkpoints else {}
-        try:
-            if ref in extra and not (self.checkpoints_root / ref).is_dir():
-                return extra[ref]
-            candidate = self.checkpoints_root / ref
-            if "/" not in ref and (candidate.is_dir() or not (Path(ref) / "meta.json").is_file()):
-                return candidate
-            if (candidate / "meta.json").is_file() and not (Path(ref) / "meta.json").is_file():  # table2/x
-                return candidate
-        except OSError as e:  # e.g. a name too long for the file system
-            raise RunnerError(f"no checkpoint at {ref}: {e.strerror or e}") from e
-        if not self._offered(Path(ref)):
-            raise RunnerError(f"checkpoint {ref!r} is not one this dashboard offers: name a checkpoint under "
-                              f"checkpoints/ (e.g. gsmn, table2/no-ground) or a finished fine-tuning run (run-N)")
-        return Path(ref)
-
-    def _offered(self, path: Path) -> bool:
-        """Under checkpoints_root, or the checkpoint the dashboard was started with, or one loaded or offered."""
-        try:
-            resolved = path.resolve()
-            known = {Path(k) for k in self.models} | {p.resolve() for p in (
-                self.extra_checkpoints() if self.extra_checkpoints else {}).values()}
-            if self.default_ref is not None:
-                known.add(Path(self.default_ref).resolve())
-            return resolved.is_relative_to(self.checkpoints_root.resolve()) or resolved in known
-        except (OSError, RuntimeError):
-            return False
-
-    def _load_default(self) -> None:
-        if self.default_ref is None:
-            self.checkpoint_message = "No checkpoint: the expert flies, and there are no model maps."
-            return
-        try:
-            self.default_model = self._model(self.default_ref).path.resolve().as_posix()
-            m = self.models[self.default_model]
-            self.checkpoint_message = (f"Checkpoint {m.path} ({m.meta.get('kind')}, created "
-                                       f"{m.meta.get('created', '?')}).")
-        except RunnerError as e:
-            if self.require_checkpoint:
-                raise
-            self.checkpoint_message = (f"No model loaded: {e}. The expert can still fly and every world can be "
-                                       f"explored; train one (docs/training.md) or pass --checkpoint.")
-
-    def _model(self, ref: str) -> LoadedModel:
-        from gsmn.model.checkpoint import CheckpointError, load_checkpoint
-        from gsmn.model.gsmn import GSMN
-        from gsmn.model.policy import ModelPolicy
-
-        path = self._path_of(ref)
-        try:
-            key = path.resolve().as_posix()
-            found = path.is_dir()
-        except OSError as e:
-            raise RunnerError(f"no checkpoint at {path}: {e.strerror or e}") from e
-        if key in self.models:
-            return self.models[key]
-        if not found:
-            raise RunnerError(f"no checkpoint at {path}")
-        try:
-            model, config, vocabulary, meta = load_checkpoint(path)
-        except CheckpointError as e:
-            raise RunnerError(str(e)) from e
-        if not isinstance(model, GSMN):
-            raise RunnerError(f"checkpoint {path} holds a {model.kind!r} model; the dashboard shows GSMN's maps and "
-                              f"needs a 'gsmn' or 'gsmn-no-plan' checkpoint")
-        cam = self.config.camera
-        if model.image_size != (cam.width, cam.height):
-            raise RunnerError(f"checkpoint {path} expects {model.image_size[0]}x{model.image_size[1]} images, the "
-                              f"simulator renders {cam.width}x{cam.height}")
-        name = path.name if path.parent.resolve() == self.checkpoints_root.resolve() else str(path)
-        self.models[key] = LoadedModel(name, path, ModelPolicy(model, vocabulary, config), MapHeads.of(model), meta)
-        return self.models[key]
 
     # -- commands ---------------------------------------------------------------------------------------------
     def _check_env_id(self, env_id: int) -> None:
@@ -409,7 +259,7 @@ class Runner(ComparingRunner):
             self._pending.appendleft(item)
             if self.live is not None:
                 c.future.set_result(answer)
-                raise _Unwind
+                raise Unwind
         else:
             self._pending.append(item)
 
@@ -422,7 +272,7 @@ class Runner(ComparingRunner):
             raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {c.policy!r}")
         model: LoadedModel | None
         if c.checkpoint is not None:
-            model = self._model(c.checkpoint)
+            model = self.checkpoints.model(c.checkpoint)
         elif self.default_model is not None:
             model = self.models[self.default_model]
         else:
@@ -439,16 +289,7 @@ class Runner(ComparingRunner):
             except DemoPathError as e:
                 raise RunnerError(f"environment {c.env_id} has no instruction with a demonstration path ({e})") from e
         else:
-            try:
-                instruction = parse_instruction(c.instruction, world)
-            except InstructionError as e:
-                raise RunnerError(str(e)) from e
-            try:
-                task = Task(world, instruction, demonstration_path(world, instruction.goal, self.config.expert))
-            except DemoPathError as e:
-                if c.policy == "expert":
-                    raise RunnerError(f"the expert has no path to that goal ({e}); try another side") from e
-                task = _straight_task(world, instruction, self.config.expert.waypoint_spacing)
+            task = task_for_text(world, c.instruction, self.config, need_path=c.policy == "expert")
         episode = Episode(id=self.episodes.new_id(), task=task, policy=c.policy,
                           system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
@@ -488,24 +329,24 @@ class Runner(ComparingRunner):
         if self.live is None:
             return False
         c.future.set_result(True)
-        raise _Unwind
+        raise Unwind
 
     def _do_CancelEpisode(self, c: CancelEpisode) -> Episode:
         """Drop a queued episode, or end the live one."""
         episode = self.episodes.get(c.episode_id)
         if episode is None:
             raise NotFound(self.episodes.missing(c.episode_id))
-        pair = self._pending_pair(episode)
+        pair = self.pairs.pending_pair(episode)
         if episode in self._pending or pair is not None:
             self._pending.remove(pair or episode)
             for e in pair.episodes if pair else (episode,):
                 e.status = CANCELLED
                 self._notify("on_episode_end", e)
             return episode
-        if episode is not self.live and not self._flying_in_pair(episode):
+        if episode is not self.live and not self.pairs.flying(episode):
             raise Conflict(f"episode {episode.id} is {episode.status}: nothing to cancel")
         c.future.set_result(episode)
-        raise _Unwind
+        raise Unwind
 
     def _do_SetSpeed(self, c: SetSpeed) -> float | None:
         if c.steps_per_second is not None and not c.steps_per_second > 0:
@@ -527,10 +368,7 @@ class Runner(ComparingRunner):
         if not 0 <= step < n:
             raise RunnerError(f"step {step} is not recorded: episode {c.episode_id} has steps 0 to {n - 1}")
         maps = episode.steps[step].maps
-        try:
-            instruction = parse_instruction(c.text, episode.task.world)
-        except InstructionError as e:
-            raise RunnerError(str(e)) from e
+        instruction = instruction_for_text(episode.task.world, c.text)
         model = self.models[episode.checkpoint]
         t0 = time.perf_counter()
         with torch.inference_mode():
@@ -551,25 +389,7 @@ class Runner(ComparingRunner):
     # -- flying -----------------------------------------------------------------------------------------------
     def _flight(self, episode: Episode) -> Flight:
         """The policy that flies `episode`, with its own runtime state (two episodes may fly together)."""
-        from gsmn.model.policy import ModelPolicy
-
-        model = self.models.get(episode.checkpoint) if episode.checkpoint else None
-        watcher = None
-        if model is not None:
-            p = model.policy
-            watcher = ModelPolicy(p.model, p.vocabulary, p.config, p.name)
-        expert = None
-        if episode.policy == "model":
-            policy = carrier = watcher
-        elif episode.policy == "mirror":  # the maps recorded are the unmirrored copy's (MirrorEnsemble)
-            from gsmn.model.policy import MirrorEnsemble
-
-            policy = carrier = MirrorEnsemble(watcher)
-        else:
-            expert = ExpertPolicy(self.config)
-            policy = WatchedPolicy(expert, watcher) if watcher is not None else expert
-            carrier = watcher
-        return Flight(episode, policy, watcher, carrier, expert)
+        return flight_for(episode, self.models.get(episode.checkpoint) if episode.checkpoint else None, self.config)
 
     def _start(self, flight: Flight) -> RolloutStart | None:
         """None for an episode from the start corner; a fork is put at its step (`gsmn.task.fork`)."""
@@ -610,7 +430,7 @@ class Runner(ComparingRunner):
             last = episode.steps[-1] if episode.steps else None
             episode.result = EpisodeResult.of(record, last.decisive_stop_probability if last else None)
             episode.status = FINISHED
-        except _Unwind:
+        except Unwind:
             episode.status = CANCELLED
         except Exception as e:  # noqa: BLE001 - the episode fails, the dashboard lives on
             log.error("episode %d failed:\n%s", episode.id, traceback.format_exc())
@@ -631,7 +451,7 @@ class Runner(ComparingRunner):
                             yaw=float(obs.pose.yaw), T_world_camera=obs.T_world_camera.astype(np.float32),
                             camera_jpeg=jpeg_bytes(obs.image), v=float(action.forward_velocity),
                             omega=float(action.yaw_rate), stop=bool(action.stop),
-                            maps=_step_maps(watcher) if watcher is not None else None,
+                            maps=step_maps(watcher) if watcher is not None else None,
                             stop_probability=action.stop_probability)
         episode.steps.append(record)
         if episode.first_frame is None:
@@ -645,7 +465,7 @@ class Runner(ComparingRunner):
         after a single-step command."""
         while True:
             if self._closing:
-                raise _Unwind
+                raise Unwind
             if self.paused:
                 if self._step_budget > 0:
                     self._step_budget -= 1
@@ -661,38 +481,10 @@ class Runner(ComparingRunner):
                 break
             if command is None:
                 self._commands.put(None)  # for the main loop, after unwinding
-                raise _Unwind
+                raise Unwind
             self._handle(command)
         self._last_step = time.perf_counter()
 
-
-@dataclass
-class Flight:
-    """An episode and what flies it: `policy` (what rollout calls), the model whose maps are recorded (`watcher`),
-    the part whose state carries from step to step (`carrier`: the model, or the mirror ensemble) and the expert
-    when it flies."""
-
-    episode: Episode
-    policy: Any
-    watcher: Any | None
-    carrier: Any | None
-    expert: ExpertPolicy | None
-
-
-def _step_maps(policy) -> StepMaps | None:
-    out = policy.last_outputs
-    if out is None:
-        return None
-    drone = policy.config.drone
-
-    def f16(t: torch.Tensor) -> np.ndarray:
-        return t[0, 0].to(torch.float16).numpy().copy()
-
-    maps = {name: f16(t) for name, t in out.maps().items() if name not in NOT_KEPT}
-    return StepMaps(maps=maps, pose=out.poses[0, 0].float().numpy().copy(),
-                    v=float(out.v[0, 0]) * drone.max_forward_velocity,
-                    omega=float(out.omega[0, 0]) * drone.max_yaw_rate,
-                    stop_probability=float(torch.sigmoid(out.stop_logit[0, 0])))
 
 
 def _replace_seconds(g: Grounding, seconds: float) -> Grounding:

@@ -20,13 +20,21 @@ import html
 import numpy as np
 import viser
 
-from app.render.colors import data_uri, png_bytes
 from app.live.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
-from app.render.layers import map_layers
-from app.render.panels import PIXELATED, maps_html
 from app.live.recording import Episode
 from app.page.scene import R_to_wxyz, _segments, yaw_wxyz
-from app.render.truth import TRUTH_LAYERS, TRUTH_TITLES, episode_truth, step_figures, truth_rgb, went_wrong, went_wrong_text
+from app.render.colors import data_uri, png_bytes
+from app.render.layers import map_layers
+from app.render.panels import PIXELATED, maps_html
+from app.render.truth import (
+    TRUTH_LAYERS,
+    TRUTH_TITLES,
+    episode_truth,
+    step_figures,
+    truth_rgb,
+    went_wrong,
+    went_wrong_text,
+)
 
 PARTNER_RGB = (200, 40, 200)
 AS_ORIGINAL = "As the original"

@@ -24,10 +24,10 @@ from urllib.parse import parse_qs
 
 import viser
 
-from app.live.commands import RunnerListener
 from app.jobs.kept import row_summary, search
-from app.render.panels import error_html
+from app.live.commands import RunnerListener
 from app.page.events import CursorMoved, EpisodeEnded, EpisodeStarted, OptionsChanged
+from app.render.panels import error_html
 
 log = logging.getLogger("gsmn.dashboard")
 ROWS = 12

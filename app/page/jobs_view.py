@@ -21,10 +21,12 @@ import traceback
 import viser
 import viser.uplot
 
-from app.live.commands import RunnerError, RunnerListener, StartEpisode
+from app.api.jobs import replay_policy
 from app.jobs.db import ACTIVE, FAILED, FINISHED, EpisodeRow, Evaluation, Run
 from app.jobs.manager import JobManager
-from app.api.jobs import replay_policy
+from app.jobs.settings import RUN_PRESETS, run_settings
+from app.live.commands import RunnerError, RunnerListener, StartEpisode
+from app.live.recording import Episode
 from app.render.jobs_panels import (
     CURVE_AXES,
     CURVE_SERIES,
@@ -49,8 +51,6 @@ from app.render.jobs_panels import (
     summary_html,
 )
 from app.render.panels import error_html
-from app.live.recording import Episode
-from app.jobs.settings import RUN_PRESETS, run_settings
 from gsmn.attribution import PIPELINE, reported_stages
 from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS

@@ -25,11 +25,11 @@ import traceback
 import viser
 from viser._gui_handles import GuiFolderHandle
 
+from app.page.events import WatchSet
 from app.render.colors import png_bytes, upscale
 from app.render.export import heads_for as _heads_for
 from app.render.export import result_line, step_layers
 from app.render.panels import cell_marks_html
-from app.page.events import WatchSet
 
 log = logging.getLogger("gsmn.dashboard")
 # the result table too: the card says the result, and without the table Run and the timeline fit on a 1280x800 screen

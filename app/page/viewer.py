@@ -35,7 +35,6 @@ import viser
 import viser.uplot
 from viser._messages import GuiSliderMark
 
-from app.render.colors import jpeg_bytes
 from app.live.commands import (
     Cancel,
     Ground,
@@ -50,7 +49,33 @@ from app.live.commands import (
     StepOnce,
     WorldShown,
 )
+from app.live.recording import Episode, StepRecord, jpeg_bytes
+from app.live.runner import Runner
 from app.page.compare_view import CompareView
+from app.page.events import (
+    Close,
+    CursorMoved,
+    EpisodeEnded,
+    EpisodeStarted,
+    Event,
+    FollowSet,
+    GroundClicked,
+    Grounded,
+    OptionsChanged,
+    PlaybackPressed,
+    ShowAnswered,
+    SidesTyped,
+    SpeedChanged,
+    StartAnswered,
+    StateChanged,
+    StepRecorded,
+    TaskVisibility,
+    WatchLive,
+    WatchSet,
+    WhatIf,
+    WorldChanged,
+)
+from app.page.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
 from app.render.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, inspect_cell, map_layers, map_title
 from app.render.panels import (
     ACTIONS_AXES,
@@ -75,33 +100,7 @@ from app.render.panels import (
     which_landmark,
     world_summary,
 )
-from app.live.recording import Episode, StepRecord
-from app.live.runner import Runner
-from app.page.scene import CAMERA_FAR, CAMERA_NEAR, DEFAULT_CAMERA, SceneView
 from app.render.truth import result_rows
-from app.page.events import (
-    Close,
-    CursorMoved,
-    EpisodeEnded,
-    EpisodeStarted,
-    Event,
-    FollowSet,
-    GroundClicked,
-    Grounded,
-    OptionsChanged,
-    PlaybackPressed,
-    ShowAnswered,
-    SidesTyped,
-    SpeedChanged,
-    StartAnswered,
-    StateChanged,
-    StepRecorded,
-    TaskVisibility,
-    WatchLive,
-    WatchSet,
-    WhatIf,
-    WorldChanged,
-)
 from gsmn.model.grid import world_cell
 from gsmn.task.instructions import SIDES, InstructionError, parse_instruction
 from gsmn.task.understand import understand

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from app.render.colors import decode_image, png_bytes, upscale
-from app.render.layers import MapHeads, map_layers
+from app.live.models import MapHeads
 from app.live.recording import FINISHED, Episode
+from app.render.colors import decode_image, png_bytes, upscale
+from app.render.layers import map_layers
 
 FORMATS = ("html", "gif", "mp4")
 MEDIA_TYPES = {"html": "text/html; charset=utf-8", "gif": "image/gif", "mp4": "video/mp4"}

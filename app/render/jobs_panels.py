@@ -10,8 +10,8 @@ import math
 import numpy as np
 
 from app.jobs.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
-from app.render.panels import region_text
 from app.jobs.supervisor import resumable
+from app.render.panels import region_text
 from app.render.truth import went_wrong_text
 from gsmn.attribution import STAGE_COLOURS, STAGE_TITLES, reported_stages
 from gsmn.world.spec import split_of

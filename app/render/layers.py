@@ -30,6 +30,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from app.live.flight import NOT_KEPT
+from app.live.models import MapHeads
 from app.render.colors import (
     apply_colormap,
     channels_legend_html,
@@ -43,7 +45,7 @@ from app.render.colors import (
     semantic_rgb,
     world_classes,
 )
-from gsmn.attribution import Heads, cell_centre
+from gsmn.attribution import cell_centre
 from gsmn.model.grid import world_cell
 from gsmn.model.gsmn import GSMNOutputs
 from gsmn.model.heads import positive_probability, softmax
@@ -52,10 +54,6 @@ from gsmn.world.landmarks import CATALOGUE
 # the record's maps the heads read, and the names of their layers (in the page and the API)
 READ_MAPS = {"semantic_map_w": "semantic", "relevance_map_w": "relevance", "goal_map_w": "goal",
              "goal_map_r": "goal_robot"}
-# Maps of the record the dashboard does not keep per step (app.live.runner): the image features and their projection
-# are the largest (about 100 kB a step together, more than all the others), and the semantic map holds what they
-# add up to.
-NOT_KEPT = ("features_c", "projected_features_w")
 RECORD_MAPS = tuple(f.name for f in fields(GSMNOutputs) if f.name[-2:] in ("_c", "_w", "_r"))  # as .maps() names
 LAYERS = (*READ_MAPS.values(), *(m for m in RECORD_MAPS if m not in READ_MAPS and m not in NOT_KEPT))
 TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
@@ -69,19 +67,12 @@ NO_PERCEPTION_HEAD = ("principal components over this frame's seen cells, on one
                       "features (no J_percept, so no landmark classes)")
 
 
-@dataclass(frozen=True)
-class MapHeads(Heads):
-    """The auxiliary heads of a GSMN as numpy arrays (gsmn.attribution.Heads; `MapHeads.of(model)`), and the
-    perception head's class names for the legend."""
-
-    class_names: tuple[str, ...] = tuple(m.noun_phrase for m in CATALOGUE)
-
-    @property
-    def palette(self) -> np.ndarray:
-        return _PALETTE[: len(self.class_names)]
-
-
 _PALETTE = class_palette(len(CATALOGUE))
+
+
+def palette_of(heads: MapHeads) -> np.ndarray:
+    """One colour per class the perception head reads (`heads.class_names`)."""
+    return _PALETTE[: len(heads.class_names)]
 
 
 @dataclass(frozen=True)
@@ -145,7 +136,7 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         classes = world_classes(classes, heads.class_names, names)
         palette = name_palette(heads.class_names, names)
     else:
-        names, palette = list(heads.class_names), heads.palette
+        names, palette = list(heads.class_names), palette_of(heads)
     if heads.perception_trained:
         semantic = Layer("semantic", TITLES["semantic"],
                          semantic_rgb(classes, confidence, observed, palette, len(heads.class_names)),

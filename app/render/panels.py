@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 
-from app.render.colors import data_uri, png_bytes
 from app.live.commands import MAX_ENV_ID, Grounding
-from app.render.layers import CellReport, Layer
 from app.live.recording import FINISHED, Episode, StepRecord
+from app.render.colors import data_uri, png_bytes
+from app.render.layers import CellReport, Layer
 from gsmn.task.metrics import steps_in_success_region
 
 PIXELATED = "width:100%;image-rendering:pixelated;display:block"

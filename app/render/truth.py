@@ -17,9 +17,10 @@ import threading
 
 import numpy as np
 
-from app.render.colors import UNSEEN_RGB, apply_colormap
-from app.render.layers import MapHeads
+from app.live.models import MapHeads
 from app.live.recording import Episode
+from app.render.colors import UNSEEN_RGB, apply_colormap
+from app.render.layers import palette_of
 from gsmn.analysis.truth import Agreement, TruthMaps, agreement, first_failures, truth_maps
 
 TRUTH_LAYERS = ("truth_semantic", "truth_relevance", "truth_goal")
@@ -49,7 +50,7 @@ def episode_truth(episode: Episode, n: int, success_radius: float = 6.0) -> Trut
 def truth_rgb(layer: str, truth: TruthMaps, heads: MapHeads) -> np.ndarray:
     """(n, n, 3) uint8, north-up, one pixel per cell."""
     if layer == "truth_semantic":
-        palette = heads.palette
+        palette = palette_of(heads)
         rgb = np.empty((*truth.class_id.shape, 3), np.uint8)
         rgb[:] = np.array(UNSEEN_RGB, np.float32) * 0.6
         inside = truth.class_id >= 0
