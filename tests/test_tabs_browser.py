@@ -16,7 +16,7 @@ from browser_support import until
 
 from app.browser import field
 from app.live.commands import SetSpeed, StartEpisode
-from app.page.viewer import speed_choice
+from app.page.controls import speed_choice
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
-"""The page's comparisons, forks and ground truth (`app.live.compare`, `app.render.truth`), beside the live view of `app.page.viewer`.
+"""The page's comparisons, forks and ground truth (`app.live.compare`, `app.render.truth`), beside the live view of
+`app.page.viewer`.
 
 - **Compare and fork** (a folder of the controls): *Compare with* another policy (and optionally its own
   instruction) and **Run both**: the two fly the shown environment together; **Fork here** flies on from the step
@@ -8,8 +9,8 @@
   and path, at the same step as the timeline (one slider scrubs both); a fork's own path starts at its fork point.
   The *Comparison* tab shows its camera image and map panels at that step, both results side by side, which one
   succeeded, and the step at which they part (`app.live.compare.diverged_at`), also marked in the scene by a ring.
-- **Ground truth**: *Truth beside the maps* adds the three truth layers (`app.render.truth`) under the model's map panels
-  with the step's agreement figures; the *Actions* tab plots the figures over the episode beside P(stop).
+- **Ground truth**: *Truth beside the maps* adds the three truth layers (`app.render.truth`) under the model's map
+  panels with the step's agreement figures; the *Actions* tab plots the figures over the episode beside P(stop).
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ class CompareView:
 
     # -- callbacks --------------------------------------------------------------------------------------------
     def _compare(self) -> None:
-        from app.page.viewer import StartAnswered
+        from app.page.events import StartAnswered
 
         v = self.viewer
         policy, checkpoint = v._policy_of_choice()
@@ -121,7 +122,7 @@ class CompareView:
         v._post(StartComparison(env_id, text, specs, preempt=True), StartAnswered)
 
     def _fork(self) -> None:
-        from app.page.viewer import StartAnswered
+        from app.page.events import StartAnswered
 
         v = self.viewer
         episode = v.view.episode

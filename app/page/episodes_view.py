@@ -1,6 +1,6 @@
-"""The page's kept episodes (`app.jobs.kept`): an "Episodes" tab that lists and searches every episode flown in the page or
-over the API, replays one in the live view, pins it and exports it; a "Share" folder that makes a link to the step
-shown ("Copy link") and downloads the episode as HTML or GIF; and the link read on load.
+"""The page's kept episodes (`app.jobs.kept`): an "Episodes" tab that lists and searches every episode flown in the
+page or over the API, replays one in the live view, pins it and exports it; a "Share" folder that makes a link to the
+step shown ("Copy link") and downloads the episode as HTML or GIF; and the link read on load.
 
 **Links.** viser gives the server no client's URL, so the page reads its own: an element of the page holds a small
 script (an image's onerror handler, which viser's HTML element runs) that writes `location.search` into a hidden

@@ -1,6 +1,6 @@
-"""What the browser page's UI thread is told (`app.page.viewer`): one small frozen record per kind of event, put on its
-queue by the runner's thread (what the simulator did), viser's callbacks (what a person did) and command answers,
-and dispatched by type."""
+"""What the browser page's UI threads are told (`app.page.viewer`, `app.page.jobs_view`): one small frozen record per
+kind of event, put on a tab's queue by the runner's thread (what the simulator did), the job manager (a job changed),
+viser's callbacks (what a person did) and command answers, and dispatched by type."""
 
 from __future__ import annotations
 
@@ -136,3 +136,64 @@ class SidesTyped(Event):
     """A typed instruction names a landmark (world, instruction): draw its four sides; None clears them."""
 
     sides: tuple | None
+
+
+# -- the Failures and Fine-tune tabs (`app.page.jobs_view`) ---------------------------------------------------------
+@dataclass(frozen=True)
+class JobChanged(Event):
+    """A job started, progressed or ended (`app.jobs.manager.JobManager.listeners`): refresh from the record."""
+
+    kind: str
+    job_id: int
+
+
+@dataclass(frozen=True)
+class Pressed(Event):
+    """A button of a group was pressed: `control` names the group (eval, run, run_action, compare_replay, page),
+    `button` its label."""
+
+    control: str
+    button: str
+
+
+@dataclass(frozen=True)
+class ImportAsked(Event):
+    path: str
+
+
+@dataclass(frozen=True)
+class EvaluationChosen(Event):
+    """Another evaluation was picked in the failure browser."""
+
+
+@dataclass(frozen=True)
+class FiltersChanged(Event):
+    """A filter or the sort order of the failure browser changed."""
+
+
+@dataclass(frozen=True)
+class RowPressed(Event):
+    row: int  # on the page shown
+
+
+@dataclass(frozen=True, eq=False)
+class Replayed(Event):
+    """A replay of an evaluation's episode ended in the live view."""
+
+    episode: Episode
+
+
+@dataclass(frozen=True, eq=False)
+class ReplayRefused(Event):
+    row: object  # app.jobs.db.EpisodeRow
+    message: str
+
+
+@dataclass(frozen=True)
+class PresetChosen(Event):
+    """Another fine-tuning preset was picked: fill its settings in."""
+
+
+@dataclass(frozen=True)
+class IterationsChanged(Event):
+    """The planned iterations changed: the empty curves span them."""

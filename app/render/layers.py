@@ -120,16 +120,9 @@ def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: st
                  channels_legend_html(label, min(3, len(maps)), channel, start))
 
 
-def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
-                 heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed",
-                 world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
-    """All four layers of one step (maps as stored: float16 or float32, channels first). With `world_names` (the
-    world's landmark names) the semantic map colours and lists only those, one entry per name, and draws cells
-    read as another world's landmark in one pale colour (`app.render.colors.world_classes`)."""
-    if value_mode not in VALUE_MODES:
-        raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
-    if range_mode not in RANGE_MODES:
-        raise ValueError(f"range_mode must be one of {RANGE_MODES}, got {range_mode!r}")
+def _semantic_layer(semantic_w: np.ndarray, heads: MapHeads, world_names: tuple[str, ...] | None
+                    ) -> tuple[Layer, np.ndarray]:
+    """The semantic layer, and which cells the camera has seen."""
     classes, confidence, observed = semantic_classes(semantic_w, heads.perception_w, heads.perception_b)
     if world_names:
         names = sorted(set(world_names))
@@ -146,6 +139,20 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
         semantic = _channels_layer("semantic", principal_components(semantic_w, observed), observed,
                                    NO_PERCEPTION_HEAD, "Semantic map: its features' 3 main components as red, green, "
                                    "blue (no perception head, no J_percept)", "component", 1, shared=True)
+    return semantic, observed
+
+
+def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
+                 heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed",
+                 world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
+    """All four layers of one step (maps as stored: float16 or float32, channels first). With `world_names` (the
+    world's landmark names) the semantic map colours and lists only those, one entry per name, and draws cells
+    read as another world's landmark in one pale colour (`app.render.colors.world_classes`)."""
+    if value_mode not in VALUE_MODES:
+        raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
+    if range_mode not in RANGE_MODES:
+        raise ValueError(f"range_mode must be one of {RANGE_MODES}, got {range_mode!r}")
+    semantic, observed = _semantic_layer(semantic_w, heads, world_names)
     relevance_title = goal_title = None
     if value_mode == "probability":
         if heads.grounding_trained:
