@@ -110,7 +110,7 @@ def test_a_fork_with_another_instruction_flies_to_another_landmark(dashboard, pa
     for _ in range(t):
         page.keyboard.press("ArrowRight")
     wait_for(page, lambda s: s["step"] == str(t), f"the cursor at step {t}")
-    from gsmn.task.instructions import parse_instruction
+    from gsmn.task.understand import parse_instruction
 
     here = original.steps[t].position[:2]
     others = [lm for lm in world.landmarks if lm.noun_phrase != original.task.instruction.noun_phrase

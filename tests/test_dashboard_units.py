@@ -437,7 +437,7 @@ def test_the_page_text_a_newcomer_reads():
         which_landmark,
         world_summary,
     )
-    from gsmn.task.instructions import parse_instruction
+    from gsmn.task.understand import parse_instruction
 
     # 6: the count matches the names (environment 76 has two palm trees; 0 two rocks)
     tiny = preset("tiny").world

@@ -1,5 +1,5 @@
-"""Exports of a kept episode (app.render.export): the self-contained HTML page opened from disk in headless Chromium with
-no server running plays the episode (its camera and maps step with the slider); the GIF has one frame per step;
+"""Exports of a kept episode (app.render.export): the self-contained HTML page opened from disk in headless Chromium
+with no server running plays the episode (its camera and maps step with the slider); the GIF has one frame per step;
 from the API and from `gsmn export` on the data folder after the server has stopped."""
 
 from __future__ import annotations

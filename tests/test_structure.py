@@ -93,3 +93,141 @@ def test_the_repository_stays_lean():
     on_disk = [str(p.relative_to(ROOT)) for p in (ROOT / "checkpoints").rglob("*")
                if p.suffix in (".pt", ".pth", ".pkl", ".pickle", ".ckpt")]
     assert on_disk == [], f"pickles in checkpoints/ (not tracked yet): {on_disk}"
+
+
+# -- the app's layers --------------------------------------------------------------------------------------------
+# app/'s packages from the bottom up: a module imports only from packages below its own, or from its own package.
+# api and page are side by side (neither imports the other); the modules at the top (app/server.py, app/cli.py) tie
+# them together. docs/dashboard.md's code map says what each holds and which thread it runs on.
+APP_LAYERS = {"live": 0, "jobs": 1, "render": 2, "api": 3, "page": 3}
+TOP = 4
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 500, 60
+
+
+def _module_of(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _module_graph(package: str) -> dict[str, set[str]]:
+    """Each module of `package` -> the modules of `package` it imports, lazy imports included (`from a.b import c`
+    counts as importing a.b.c where that is a module)."""
+    paths = sorted((ROOT / package).rglob("*.py"))
+    modules = {_module_of(p) for p in paths}
+    graph: dict[str, set[str]] = {}
+    for path in paths:
+        me, found = _module_of(path), set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                base = node.module
+                if node.level:
+                    here = me.split(".") if path.name == "__init__.py" else me.split(".")[:-1]
+                    base = ".".join(here[:len(here) - node.level + 1] + [node.module])
+                found.add(base)
+                found.update(f"{base}.{a.name}" for a in node.names if f"{base}.{a.name}" in modules)
+        graph[me] = {m for m in found if m in modules and m != me and not me.startswith(m + ".")}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles: strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def _layer(module: str) -> tuple[str, int]:
+    parts = module.split(".")
+    if len(parts) > 2 or (len(parts) == 2 and parts[1] in APP_LAYERS):
+        return parts[1], APP_LAYERS[parts[1]]
+    return module, TOP
+
+
+@pytest.mark.parametrize("package", ["app", "gsmn"])
+def test_no_import_circle(package):
+    assert _cycles(_module_graph(package)) == []
+
+
+def test_every_app_module_lies_in_a_known_layer():
+    unknown = [m for m in _module_graph("app") if m.count(".") >= 2 and m.split(".")[1] not in APP_LAYERS]
+    assert unknown == [], f"a package of app/ missing from APP_LAYERS: {unknown}"
+
+
+def test_app_arrows_run_one_way():
+    """No module imports from a package above its own or beside it; the package graph is printed."""
+    arrows: dict[tuple[str, str], int] = {}
+    wrong = []
+    for module, imported in _module_graph("app").items():
+        (mine, rank) = _layer(module)
+        for other in imported:
+            (theirs, their_rank) = _layer(other)
+            if theirs == mine:
+                continue
+            arrows[(mine, theirs)] = arrows.get((mine, theirs), 0) + 1
+            if their_rank > rank or (their_rank == rank and rank != TOP):
+                wrong.append(f"{module} -> {other}")
+    ranks = sorted(set(APP_LAYERS.values()))
+    print("\napp/ packages, bottom up:", " < ".join("{" + ", ".join(p for p, r in APP_LAYERS.items() if r == rank) + "}"
+                                                   for rank in ranks), "< app/*.py")
+    for (a, b), n in sorted(arrows.items()):
+        print(f"  {a} -> {b} ({n} import{'s' if n > 1 else ''})")
+    assert wrong == []
+
+
+def test_app_modules_and_functions_are_short():
+    long_modules, long_functions = [], []
+    for path in sorted((ROOT / "app").rglob("*.py")):
+        text = path.read_text()
+        name = str(path.relative_to(ROOT))
+        if text.count("\n") > MAX_MODULE_LINES:
+            long_modules.append(f"{name}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{name}:{node.lineno} {node.name}: {n} lines")
+    assert long_modules == [] and long_functions == []
+
+
+def _code_map() -> dict[str, str]:
+    """docs/dashboard.md's code map: path -> its thread column."""
+    text = (ROOT / "docs" / "dashboard.md").read_text()
+    section = text.split("## Code map", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| `(app/[\w/.]*)` \| [^|]+ \| ([^|]+) \|$", section, flags=re.M)
+    return {path: thread.strip() for path, thread in rows}
+
+
+def test_the_code_map_names_every_package_and_module_of_the_app():
+    listed = _code_map()
+    actual = {str(p.relative_to(ROOT)) for p in (ROOT / "app").rglob("*.py") if p.name != "__init__.py"}
+    actual |= {str(p.relative_to(ROOT)) + "/" for p in (ROOT / "app").iterdir() if (p / "__init__.py").is_file()}
+    assert sorted(actual - set(listed)) == [], "modules missing from docs/dashboard.md's code map"
+    assert sorted(set(listed) - actual) == [], "the code map names modules that are gone"
+    assert all(listed.values()), "every row names the thread it runs on"

@@ -8,8 +8,8 @@ import itertools
 
 import pytest
 
-from gsmn.task.instructions import SIDES, InstructionError, parse_instruction
-from gsmn.task.understand import HEADS, SYNONYMS, understand
+from gsmn.task.instructions import SIDES, InstructionError
+from gsmn.task.understand import HEADS, SYNONYMS, parse_instruction, understand
 from gsmn.world.catalogue import CATALOGUE, NOUN_PHRASES
 from gsmn.world.spec import LandmarkSpec, WorldSpec, start_pose
 

@@ -18,8 +18,9 @@ from app.live.recording import Episode, StepMaps
 from gsmn.config import RunConfig
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
-from gsmn.task.instructions import Instruction, InstructionError, parse_instruction
+from gsmn.task.instructions import Instruction, InstructionError
 from gsmn.task.rollout import PolicyAction, Task
+from gsmn.task.understand import parse_instruction
 from gsmn.world.env import Observation
 from gsmn.world.spec import WorldSpec
 

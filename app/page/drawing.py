@@ -32,7 +32,8 @@ from app.render.panels import (
     timeline_marks,
     whatif_markdown,
 )
-from gsmn.task.instructions import InstructionError, parse_instruction
+from gsmn.task.instructions import InstructionError
+from gsmn.task.understand import parse_instruction
 
 GROUNDING_WAIT = 0.25  # s the page waits for a counterfactual grounding before drawing without it
 

@@ -115,15 +115,3 @@ def instruction_for_env(world: WorldSpec, config: TaskConfig | None = None) -> I
     """The instruction of an environment: deterministic for (config.seed, world.env_id)."""
     config = config or TaskConfig()
     return sample_instruction(world, rng_for_instruction(world.env_id, config.seed), config)
-
-
-def parse_instruction(text: str, world: WorldSpec) -> Instruction:
-    """Understand free text such as "fly behind the red phone booth" in `world` as the template the model knows
-    (`gsmn.task.understand`): the returned Instruction's text is the template flown. An ambiguous phrase (several
-    landmarks of the world share it) resolves to the first of them, with `ambiguous=True`. Raises
-    `InstructionError` with a message for users (why, and the nearest instructions this world allows) when no or
-    two sides, no or two landmarks, or a landmark this world lacks are named, or several landmark kinds fit.
-    """
-    from gsmn.task.understand import understood_instruction
-
-    return understood_instruction(text, world)

@@ -16,8 +16,9 @@ import numpy as np
 
 from gsmn.config import RunConfig
 from gsmn.task.demo import DemoPathError, demonstration_path
-from gsmn.task.instructions import Instruction, parse_instruction, rng_for_instruction, sample_instruction
+from gsmn.task.instructions import Instruction, rng_for_instruction, sample_instruction
 from gsmn.task.metrics import goal_distance, landmark_success, success
+from gsmn.task.understand import parse_instruction
 from gsmn.world.env import Action, Env, Observation
 from gsmn.world.spec import WorldSpec, world_for_env
 

@@ -278,3 +278,13 @@ def understood_instruction(text: str, world: WorldSpec) -> Instruction:
     if u.instruction is None:
         raise InstructionError(u.message())
     return u.instruction
+
+
+def parse_instruction(text: str, world: WorldSpec) -> Instruction:
+    """Understand free text such as "fly behind the red phone booth" in `world` as the template the model knows
+    (`gsmn.task.understand`): the returned Instruction's text is the template flown. An ambiguous phrase (several
+    landmarks of the world share it) resolves to the first of them, with `ambiguous=True`. Raises
+    `InstructionError` with a message for users (why, and the nearest instructions this world allows) when no or
+    two sides, no or two landmarks, or a landmark this world lacks are named, or several landmark kinds fit.
+    """
+    return understood_instruction(text, world)
