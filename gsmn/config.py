@@ -6,7 +6,8 @@ carries its help text in `metadata["help"]`; `gsmn.cli` turns the fields into co
 `__post_init__` and fails with a clear message before any simulation starts.
 
 Presets: `paper` (the paper's and the original code's numbers, see docs/design.md for departures) and
-`tiny` (the same world, cheaper rendering, for tests and CI).
+`tiny` (the same world, cheaper rendering, for tests and CI). Fine-tuning presets (`FINE_TUNE_PRESETS`: tiny, small,
+paper): the sizes of a DAggerFM run the dashboard launches, as DaggerConfig and TrainConfig values.
 """
 
 from __future__ import annotations
@@ -447,3 +448,34 @@ def preset(name: str) -> RunConfig:
 
 
 PRESETS = ("paper", "tiny")
+
+
+@dataclass(frozen=True)
+class FineTunePreset:
+    """The size of a DAggerFM fine-tuning run, as the dashboard launches one (app.jobs.settings): what it takes from
+    `dagger` (iterations, rollouts_per_iteration, dataset_size, beta0, workers) and `train` (learning_rate,
+    batch_size, threads, mirror), the rollouts' horizon, and how many dev episodes it validates on. A field not
+    given is its class's default; the rest of the run's configuration is the server's."""
+
+    dev_episodes: int  # expert episodes of the dev split validated on after every iteration
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    horizon: int | None = None  # steps per rollout (task.horizon); None: the configuration's own
+
+    def __post_init__(self) -> None:
+        _check(self.dev_episodes >= 1, f"dev_episodes must be at least 1, got {self.dev_episodes}")
+        _check(self.horizon is None or self.horizon >= 1, f"horizon must be >= 1 or None, got {self.horizon}")
+
+
+FINE_TUNE_PRESETS: dict[str, FineTunePreset] = {
+    # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4
+    "tiny": FineTunePreset(
+        dagger=DaggerConfig(iterations=2, rollouts_per_iteration=2, dataset_size=4, beta0=0.5, workers=1),
+        train=TrainConfig(batch_size=2, threads=1), horizon=30, dev_episodes=2),
+    # some tens of minutes: a first look at what fine-tuning on failures does
+    "small": FineTunePreset(
+        dagger=DaggerConfig(iterations=10, rollouts_per_iteration=8, dataset_size=40, workers=1),
+        train=TrainConfig(threads=1), dev_episodes=8),
+    # the paper's (DaggerConfig's and TrainConfig's defaults), training on one torch thread beside the rollout workers
+    "paper": FineTunePreset(train=TrainConfig(threads=1), dev_episodes=30),
+}

@@ -1,5 +1,6 @@
-"""A fine-tuning run's settings: the presets the dashboard offers (tiny, small, paper), a preset with fields
-overridden, and the run's configuration they make (which checks them)."""
+"""A fine-tuning run's settings: the presets the dashboard offers (tiny, small, paper: `gsmn.config.FINE_TUNE_PRESETS`,
+which hold their numbers), a preset with fields overridden, and the run's configuration they make (which checks
+them)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,13 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 
 from app.live.commands import RunnerError
-from gsmn.config import ConfigError, RunConfig
+from gsmn.config import FINE_TUNE_PRESETS, ConfigError, FineTunePreset, RunConfig
 
 
 @dataclass(frozen=True)
 class RunSettings:
-    """A DAggerFM fine-tuning run (gsmn.config.DaggerConfig and TrainConfig, plus where its data comes from)."""
+    """A DAggerFM fine-tuning run (gsmn.config.DaggerConfig and TrainConfig, plus where its data comes from); the
+    record keeps it as its `to_dict()`."""
 
     preset: str
     iterations: int  # DAggerFM iterations, one epoch each
@@ -25,28 +27,29 @@ class RunSettings:
     batch_size: int
     workers: int  # rollout worker processes
     threads: int  # torch threads of the training process
+    mirror: float  # share of training episodes mirrored east-west (train.mirror; not in the paper)
     expert_data: str | None = None  # an expert episode store to start from; None: collect one in the data folder
-    mirror: float = 0.0  # share of training episodes mirrored east-west (train.mirror; not in the paper)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-MAX_ROLLOUTS = 2000  # iterations x N_D of a run launched from the dashboard
-# expert episodes of the dev split a run launched from the dashboard validates on after every iteration, by preset
-DEV_EPISODES = {"tiny": 2, "small": 8, "paper": 30}
+# the settings that are configuration fields, by section, each named as its field (horizon is task.horizon, when given)
+CONFIG_FIELDS = {"dagger": ("iterations", "rollouts_per_iteration", "dataset_size", "beta0", "workers"),
+                 "train": ("learning_rate", "batch_size", "threads", "mirror")}
 
-RUN_PRESETS = {
-    # a minute or two on a busy 2-core machine: 2 iterations of 2 short rollouts on a dataset of 4
-    "tiny": RunSettings("tiny", iterations=2, rollouts_per_iteration=2, dataset_size=4, beta0=0.5,
-                        learning_rate=1e-3, horizon=30, batch_size=2, workers=1, threads=1),
-    # some tens of minutes: a first look at what fine-tuning on failures does
-    "small": RunSettings("small", iterations=10, rollouts_per_iteration=8, dataset_size=40, beta0=0.92,
-                         learning_rate=1e-3, horizon=None, batch_size=4, workers=1, threads=1),
-    # the original's settings (gsmn.config.DaggerConfig)
-    "paper": RunSettings("paper", iterations=150, rollouts_per_iteration=24, dataset_size=500, beta0=0.92,
-                         learning_rate=1e-3, horizon=None, batch_size=4, workers=2, threads=1),
-}
+
+def preset_settings(name: str, p: FineTunePreset) -> RunSettings:
+    """A fine-tuning preset of the configuration as a run's settings."""
+    return RunSettings(name, horizon=p.horizon, **{f: getattr(getattr(p, section), f)
+                                                   for section, names in CONFIG_FIELDS.items() for f in names})
+
+
+MAX_ROLLOUTS = 2000  # iterations x N_D of a run launched from the dashboard
+RUN_PRESETS = {name: preset_settings(name, p) for name, p in FINE_TUNE_PRESETS.items()}
+# expert episodes of the dev split a run launched from the dashboard validates on after every iteration, by preset
+DEV_EPISODES = {name: p.dev_episodes for name, p in FINE_TUNE_PRESETS.items()}
+_PAPER = f"{RUN_PRESETS['paper'].iterations} x {RUN_PRESETS['paper'].rollouts_per_iteration}"
 
 
 def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
@@ -62,7 +65,7 @@ def run_settings(preset_name: str = "tiny", **overrides) -> RunSettings:
     # what DaggerConfig checks (counts, N_D <= M, beta0, ...) it checks in run_config; this is the job's size
     if s.iterations * s.rollouts_per_iteration > MAX_ROLLOUTS:
         raise RunnerError(f"{s.iterations} iterations of {s.rollouts_per_iteration} rollouts are more than the "
-                          f"dashboard launches (at most {MAX_ROLLOUTS} rollouts in all; the paper's 150 x 24 take "
+                          f"dashboard launches (at most {MAX_ROLLOUTS} rollouts in all; the paper's {_PAPER} take "
                           "days on a few cores): run `gsmn train dagger` from a shell for that")
     return s
 
@@ -71,13 +74,10 @@ def run_config(config: RunConfig, s: RunSettings) -> RunConfig:
     """The server's configuration with a run's settings; the configuration checks them (DaggerConfig, TrainConfig,
     TaskConfig), and what it refuses is the request's error."""
     try:
-        return replace(
-            config,
-            dagger=replace(config.dagger, iterations=s.iterations, rollouts_per_iteration=s.rollouts_per_iteration,
-                           dataset_size=s.dataset_size, beta0=s.beta0, workers=s.workers),
-            train=replace(config.train, learning_rate=s.learning_rate, batch_size=s.batch_size, threads=s.threads,
-                          mirror=s.mirror),
-            task=config.task if s.horizon is None else replace(config.task, horizon=s.horizon))
+        sections = {section: replace(getattr(config, section), **{f: getattr(s, f) for f in names})
+                    for section, names in CONFIG_FIELDS.items()}
+        return replace(config, **sections,
+                       task=config.task if s.horizon is None else replace(config.task, horizon=s.horizon))
     except ConfigError as e:
         raise RunnerError(str(e)) from e
 
