@@ -90,7 +90,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from app.jobs.db import Database, RecordError
-    from app.jobs.kept import KeptStore
+    from app.jobs.kept_store import KeptStore
     from app.render.export import export_episode, heads_for
 
     record = Path(args.data_dir) / "gsmn.sqlite"

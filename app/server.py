@@ -36,7 +36,8 @@ from app.api.access import (
     url,
 )
 from app.api.episodes import make_api
-from app.jobs.kept import DEFAULT_LIMIT_MB, EpisodeKeeper, KeptStore
+from app.jobs.kept import DEFAULT_LIMIT_MB, EpisodeKeeper
+from app.jobs.kept_store import KeptStore
 from app.jobs.manager import JobManager
 from app.live.commands import Conflict, RunnerError, ShowEnv
 from app.live.runner import Runner

@@ -16,7 +16,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.jobs.db import Database  # noqa: E402
-from app.jobs.kept import EpisodeKeeper, KeptStore  # noqa: E402
+from app.jobs.kept import EpisodeKeeper  # noqa: E402
+from app.jobs.kept_store import KeptStore  # noqa: E402
 from app.live.commands import StartEpisode  # noqa: E402
 from app.live.runner import Runner  # noqa: E402
 from app.render.export import export_episode, heads_for  # noqa: E402

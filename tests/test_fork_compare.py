@@ -248,7 +248,8 @@ def test_forks_and_comparisons_are_kept_in_the_record_with_every_step(tmp_path):
     """A fork starts with the original's steps 0..t-1, never flown again: the record keeps them too, so the kept
     fork has all its steps; both episodes of a comparison are kept."""
     from app.jobs.db import Database
-    from app.jobs.kept import EpisodeKeeper, KeptStore
+    from app.jobs.kept import EpisodeKeeper
+    from app.jobs.kept_store import KeptStore
 
     torch.set_num_threads(1)
     folder = make_untrained_checkpoint(tmp_path / "gsmn")

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from app.jobs.db import Database, EpisodeRow
-from app.jobs.manager import JobManager, evaluation_system, run_progress
+from app.jobs.manager import JobManager, evaluation_system
 from app.jobs.results import region_steps_of, region_stop_p_of, summarize_rows
+from app.jobs.runs import run_progress
 from app.jobs.settings import RUN_PRESETS, run_config, run_settings
 from app.jobs.supervisor import pid_runs
 from app.live.commands import RunnerError

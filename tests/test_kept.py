@@ -188,7 +188,7 @@ def test_retention_removes_the_oldest_unpinned_and_never_a_pinned_one(tmp_path, 
 
 
 def test_maps_come_back_within_their_quantisation_step():
-    from app.jobs.kept import pack_maps, unpack_maps
+    from app.jobs.kept_store import pack_maps, unpack_maps
 
     rng = np.random.default_rng(0)
     maps = {"semantic_map_w": rng.normal(size=(32, 16, 16)).astype(np.float16),

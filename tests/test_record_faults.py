@@ -101,7 +101,8 @@ import json, os, sys, time
 from pathlib import Path
 import numpy as np
 from app.jobs.db import Database, RecordError
-from app.jobs.kept import EpisodeKeeper, KeptStore
+from app.jobs.kept import EpisodeKeeper
+from app.jobs.kept_store import KeptStore
 from app.live.recording import FINISHED, Episode, EpisodeResult, StepRecord
 from gsmn.config import preset
 from gsmn.task.rollout import task_for_env

@@ -123,7 +123,7 @@ CREATE TABLE IF NOT EXISTS kept_steps (
     step INTEGER NOT NULL,
     data TEXT NOT NULL,             -- JSON: pose, actions, P(stop), T_world_camera, the model's own action
     camera BLOB NOT NULL,           -- JPEG
-    maps BLOB,                      -- the model's maps, quantised to 8 bits per channel (app.jobs.kept.pack_maps)
+    maps BLOB,                      -- the model's maps, quantised to 8 bits per channel (app.jobs.kept_store.pack_maps)
     PRIMARY KEY (episode_id, step)
 );
 CREATE INDEX IF NOT EXISTS kept_by_created ON kept_episodes (created);

@@ -21,9 +21,10 @@ complete, else failed). Runs write only into their own folder, so no outcome of 
 At most `max_runs` runs and `max_evaluations` evaluations at a time (1 by default): a request over the limit is
 refused with a message, so background jobs never starve the live view of more cores.
 
-This module is what the API and the view call (`JobManager`): what each kind of job runs and how its folder reads.
-The process groups themselves are `app.jobs.supervisor`'s, a run's settings `app.jobs.settings`', the recorded episodes,
-summaries and comparisons `app.jobs.results`'.
+This module is what the API and the view call (`JobManager`): what an evaluation runs and how its folder reads, and
+the checks and records around launching a run. The process groups themselves are `app.jobs.supervisor`'s, a run's
+settings `app.jobs.settings`', a run's commands and folder `app.jobs.runs`', the recorded episodes, summaries and
+comparisons `app.jobs.results`'.
 """
 
 from __future__ import annotations
@@ -32,7 +33,6 @@ import errno
 import json
 import logging
 import os
-import shlex
 import stat
 import sys
 import time
@@ -42,7 +42,8 @@ from pathlib import Path
 
 from app.jobs.db import FINISHED, Database, Evaluation, Run
 from app.jobs.results import EpisodeRecorder, compare, summarize_rows
-from app.jobs.settings import DEV_EPISODES, RunSettings, expert_store_key, run_config
+from app.jobs.runs import DAGGER_KINDS, run_command, run_complete, run_progress
+from app.jobs.settings import RunSettings, run_config
 from app.jobs.supervisor import Handle, Supervisor, alive
 from app.live.commands import Forbidden, NotFound, RunnerError, TooLarge
 from gsmn.config import RunConfig
@@ -242,7 +243,7 @@ class JobManager:
         config = run_config(self.config, settings)
         init = self.resolve_checkpoint(checkpoint)
         kind = _checkpoint_kind(init)
-        if kind not in ("gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem"):
+        if kind not in DAGGER_KINDS:
             raise RunnerError(f"checkpoint {init} holds a {kind!r} model, which DAggerFM cannot train")
         if evaluation_id is not None:
             source = self.evaluation(evaluation_id)
@@ -266,36 +267,8 @@ class JobManager:
             folder = new_job_folder(self.root / "runs", rid)
             self.db.update_run(rid, folder=str(folder))
             (folder / "config.json").write_text(config.to_json() + "\n")
-            # the expert demonstrations the dataset starts from: a store named in the settings; else those of the
-            # chosen environments, in the run's folder; else the train split's, shared by runs with the same settings
-            if expert_data is not None:
-                store = expert_data
-            elif env_ids is not None:
-                store = folder / "expert"
-            else:
-                store = self.root / "expert" / expert_store_key(config)
-            flags = ["--config", str(folder / "config.json")]
-            parts = []
-            if settings.expert_data is None:
-                from gsmn.world.spec import split_env_ids
-
-                demos = env_ids if env_ids is not None else split_env_ids("train", settings.dataset_size)
-                parts.append(shlex.join([self.python, "-m", "gsmn.cli", "collect", "--out", str(store), "--env-ids",
-                                         ",".join(map(str, demos)), "--workers", str(settings.workers), *flags]))
-            # expert episodes of the dev split, validated on after every iteration: the per-objective accuracies the
-            # Fine-tune tab plots as the run trains (the paper's Figure 4), shared by runs with the same settings
-            from gsmn.world.spec import split_env_ids
-
-            dev = self.root / "expert_dev" / expert_store_key(config)
-            dev_ids = split_env_ids("dev", DEV_EPISODES.get(settings.preset, DEV_EPISODES["tiny"]))
-            parts.append(shlex.join([self.python, "-m", "gsmn.cli", "collect", "--out", str(dev), "--env-ids",
-                                     ",".join(map(str, dev_ids)), "--workers", str(settings.workers), *flags]))
-            dagger = [self.python, "-m", "gsmn.cli", "train", "dagger", "--init", str(init), "--data", str(store),
-                      "--dev", str(dev), "--run", str(folder / "run"), *flags]
-            if env_ids is not None:
-                dagger += ["--env-ids", ",".join(map(str, env_ids))]
-            parts.append("exec " + shlex.join(dagger))
-            self.supervisor.launch("run", rid, folder, ["sh", "-c", " && ".join(parts)])
+            command = run_command(self.python, self.root, folder, config, settings, init, env_ids, expert_data)
+            self.supervisor.launch("run", rid, folder, command)
         return self.db.run(rid)
 
     def cancel_run(self, run_id: int) -> Run:
@@ -387,10 +360,9 @@ class JobManager:
         self.supervisor.escalate(h, running)
         if running:
             return
-        checkpoint = h.folder / "run" / "checkpoint"
-        complete = len(metrics) >= row.settings["iterations"] and _loads(checkpoint)
-        self.supervisor.settle(h, rc, complete, {"checkpoint": str(checkpoint),
-                                                  "progress": {**progress, "fraction": 1.0}})
+        self.supervisor.settle(h, rc, run_complete(h.folder, row, metrics),
+                               {"checkpoint": str(h.folder / "run" / "checkpoint"),
+                                "progress": {**progress, "fraction": 1.0}})
 
     def _notify(self, kind: str, job_id: int) -> None:
         for listener in list(self.listeners):
@@ -400,35 +372,7 @@ class JobManager:
                 log.error("job listener failed:\n%s", traceback.format_exc())
 
 
-# -- reading a run's folder ---------------------------------------------------------------------------------------
-def run_progress(folder: Path, row: Run) -> tuple[dict, list[dict]]:
-    """Where a run is (phase, iteration, overall fraction, a line for people) and its per-iteration log so far,
-    from its folder: the expert store while collecting, then what the trainer reports (`read_progress`)."""
-    from gsmn.training.run import read_progress
-
-    iterations = int(row.settings["iterations"])
-    p = read_progress(folder / "run", iterations)
-    if p is None:
-        return {"phase": "expert data", "iteration": 0, "iterations": iterations, "fraction": 0.0,
-                "text": "collecting the expert demonstrations the dataset starts from"}, []
-    text = f"iteration {min(p.done + 1, iterations)} of {iterations}"
-    if p.done >= iterations:
-        text = f"{iterations} iterations done"
-    elif p.rollouts is not None:
-        text += f": rollouts {p.rollouts[0]}/{p.rollouts[1]} (beta {p.beta:.2f})"
-    elif p.batches is not None:
-        text += f": training, batch {p.batches[0]}/{p.batches[1]}" + (f", loss {p.loss:.3f}" if p.loss is not None
-                                                                         else "")
-    elif p.iteration is not None:
-        text = f"iteration {p.iteration} of {iterations}: {p.phase}"
-    else:
-        text += f": {p.phase}"
-    out = {"phase": p.phase, "iteration": p.done, "iterations": iterations, "fraction": p.fraction, "text": text}
-    if p.log:
-        out["loss"] = p.log[-1].get("train", {}).get("loss")
-    return out, p.log
-
-
+# -- job folders ---------------------------------------------------------------------------------------------------
 def new_job_folder(parent: Path, job_id: int) -> Path:
     """A folder for a new job, never one that holds files already: a record started afresh beside old job folders
     numbers its jobs from 1 again, and must not write over what they saved."""
@@ -497,13 +441,3 @@ def _checkpoint_kind(folder: Path) -> str:
         return read_checkpoint_kind(folder)
     except CheckpointError as e:
         raise RunnerError(str(e)) from e
-
-
-def _loads(folder: Path) -> bool:
-    from gsmn.model.checkpoint import CheckpointError, load_checkpoint
-
-    try:
-        load_checkpoint(folder)
-        return True
-    except (CheckpointError, OSError, ValueError):
-        return False
