@@ -35,7 +35,7 @@ from app.api.access import (
     unguard_viser,
     url,
 )
-from app.api.episodes import make_api
+from app.api.app import make_api
 from app.jobs.kept import DEFAULT_LIMIT_MB, EpisodeKeeper
 from app.jobs.kept_store import KeptStore
 from app.jobs.manager import JobManager

@@ -189,7 +189,7 @@ def test_diverged_at():
 
 
 def test_the_http_routes(runner):
-    from app.api.episodes import make_api
+    from app.api.app import make_api
 
     client = TestClient(make_api(runner))
     body = {"env_id": 74, "policies": [{"policy": "expert"}, {"policy": "model"}]}
@@ -220,7 +220,7 @@ def test_the_http_routes(runner):
 
 
 def test_truth_layers_and_figures_are_served(runner):
-    from app.api.episodes import make_api
+    from app.api.app import make_api
     from app.render.colors import decode_image
 
     client = TestClient(make_api(runner))

@@ -1,23 +1,24 @@
-"""The HTTP routes of comparisons and forks (`app.live.compare`): `POST /api/comparisons`, `GET /api/comparisons`,
-`GET /api/comparisons/{id}`, `POST /api/episodes/{id}/fork`."""
+"""The routes of comparisons and forks (`app.live.compare`): `POST /api/comparisons`, `GET /api/comparisons`,
+`GET /api/comparisons/{id}`, `POST /api/episodes/{id}/fork`.
+
+`app.api.app` includes `router` last.
+"""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
-from fastapi import FastAPI
+from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from app.api.episodes import EpisodeCreated, EpisodeSummary, summary
+from app.api.deps import COMMAND_TIMEOUT, TheRunner
+from app.api.models import MAX_STEP, EpisodeCreated, EpisodeId, EpisodeSummary, Policy, summary
 from app.api.schema import EnvId, Strict, Text, path_id, responses
 from app.live.commands import NotFound
 from app.live.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
 
-COMMAND_TIMEOUT = 60.0
-MAX_STEP = 100_000
-Policy = Literal["model", "mirror", "expert"]
+router = APIRouter()
 ComparisonId = Annotated[int, path_id("comparison")]
-EpisodeId = Annotated[int, path_id("episode")]
 
 
 class PolicySpecModel(Strict):
@@ -59,38 +60,40 @@ class ComparisonModel(BaseModel):
     succeeded: list[int] = Field(description="the ids of the episodes that succeeded")
 
 
-def add_compare_routes(app: FastAPI, runner) -> None:
+def answer(c: Comparison) -> ComparisonModel:
+    return ComparisonModel(id=c.id, status=c.status, env_id=c.episodes[0].env_id,
+                           episodes=[summary(e) for e in c.episodes], diverged_at=c.diverged_at(),
+                           succeeded=[e.id for e in c.episodes if e.result is not None and e.result.success])
 
-    def answer(c: Comparison) -> ComparisonModel:
-        return ComparisonModel(id=c.id, status=c.status, env_id=c.episodes[0].env_id,
-                               episodes=[summary(e) for e in c.episodes], diverged_at=c.diverged_at(),
-                               succeeded=[e.id for e in c.episodes if e.result is not None and e.result.success])
 
-    @app.post("/api/comparisons", response_model=ComparisonCreated, status_code=201,
-              responses=responses(400, 409, 422, 503),
-              summary="Fly one environment with two policies side by side (they step together)")
-    def create_comparison(request: ComparisonRequest) -> ComparisonCreated:
-        specs = [PolicySpec(p.policy, p.checkpoint, p.instruction) for p in request.policies]
-        c = runner.call(StartComparison(request.env_id, request.instruction, specs), COMMAND_TIMEOUT)
-        return ComparisonCreated(id=c.id, episodes=[e.id for e in c.episodes])
+@router.post("/api/comparisons", response_model=ComparisonCreated, status_code=201,
+             responses=responses(400, 409, 422, 503),
+             summary="Fly one environment with two policies side by side (they step together)")
+def create_comparison(request: ComparisonRequest, runner: TheRunner) -> ComparisonCreated:
+    specs = [PolicySpec(p.policy, p.checkpoint, p.instruction) for p in request.policies]
+    c = runner.call(StartComparison(request.env_id, request.instruction, specs), COMMAND_TIMEOUT)
+    return ComparisonCreated(id=c.id, episodes=[e.id for e in c.episodes])
 
-    @app.get("/api/comparisons", response_model=list[ComparisonModel], summary="Comparisons kept in memory")
-    def list_comparisons() -> list[ComparisonModel]:
-        return [answer(c) for c in list(runner.pairs.store.values())]
 
-    @app.get("/api/comparisons/{comparison_id}", response_model=ComparisonModel, responses=responses(404, 422),
-             summary="Both episodes' status and results, and the step at which they part")
-    def get_comparison(comparison_id: ComparisonId) -> ComparisonModel:
-        c = runner.comparison(comparison_id)
-        if c is None:
-            raise NotFound(f"no comparison {comparison_id} (comparisons are kept in memory, the oldest dropped)")
-        return answer(c)
+@router.get("/api/comparisons", response_model=list[ComparisonModel], summary="Comparisons kept in memory")
+def list_comparisons(runner: TheRunner) -> list[ComparisonModel]:
+    return [answer(c) for c in list(runner.pairs.store.values())]
 
-    @app.post("/api/episodes/{episode_id}/fork", response_model=EpisodeCreated, status_code=201,
-              responses=responses(400, 404, 409, 422, 503),
-              summary="Fly on from step t of a finished episode, with another instruction, policy or checkpoint")
-    def fork(episode_id: EpisodeId, request: ForkRequest):
-        e = runner.call(ForkEpisode(episode_id, request.step, request.instruction, request.checkpoint,
-                                    request.policy), COMMAND_TIMEOUT)
-        return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
-                              policy=e.policy)
+
+@router.get("/api/comparisons/{comparison_id}", response_model=ComparisonModel, responses=responses(404, 422),
+            summary="Both episodes' status and results, and the step at which they part")
+def get_comparison(comparison_id: ComparisonId, runner: TheRunner) -> ComparisonModel:
+    c = runner.comparison(comparison_id)
+    if c is None:
+        raise NotFound(f"no comparison {comparison_id} (comparisons are kept in memory, the oldest dropped)")
+    return answer(c)
+
+
+@router.post("/api/episodes/{episode_id}/fork", response_model=EpisodeCreated, status_code=201,
+             responses=responses(400, 404, 409, 422, 503),
+             summary="Fly on from step t of a finished episode, with another instruction, policy or checkpoint")
+def fork(episode_id: EpisodeId, request: ForkRequest, runner: TheRunner):
+    e = runner.call(ForkEpisode(episode_id, request.step, request.instruction, request.checkpoint,
+                                request.policy), COMMAND_TIMEOUT)
+    return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
+                          policy=e.policy)

@@ -1,29 +1,31 @@
-"""HTTP routes for evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
-(`app.jobs.manager`), added to the dashboard's FastAPI app. Errors answer {"detail": ...} as the rest of the API: 404 for
-unknown ids, 409 when a limit is reached or there is nothing to cancel or resume, 413 for a file too large to
-import, 422 for bad input, 503 when the record cannot be written (`app.api.schema` says what every input may be)."""
+"""The routes of evaluations, their episodes and failure attribution, and DAggerFM fine-tuning runs
+(`app.jobs.manager`). Errors answer {"detail": ...} as the rest of the API: 404 for unknown ids, 409 when a limit
+is reached or there is nothing to cancel or resume, 413 for a file too large to import, 422 for bad input, 503 when
+the record cannot be written (`app.api.schema` says what every input may be).
+
+`app.api.app` includes `router` first, and only when the server has a job manager. `replay_policy` also tells the
+page (`app.page.jobs_view`) who flies a replay.
+"""
 
 from __future__ import annotations
 
 import math
 from typing import Annotated, Literal
 
-from fastapi import FastAPI, Query
+from fastapi import APIRouter, Query
 from pydantic import BaseModel, Field
 
+from app.api.deps import COMMAND_TIMEOUT, Jobs, TheRunner
 from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
 from app.jobs.settings import MAX_ROLLOUTS, run_settings
 from app.live.commands import NotFound, RunnerError, StartEpisode
-from app.live.runner import Runner
 from gsmn.attribution import STAGES
 
-COMMAND_TIMEOUT = 60.0
+router = APIRouter()
 SYSTEMS = Literal["gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem", "oracle"]
 STATUS = Literal["queued", "running", "finished", "failed", "cancelled"]
-
-
 EvaluationId = Annotated[int, path_id("evaluation")]
 RunId = Annotated[int, path_id("run")]
 
@@ -189,107 +191,119 @@ def run_model(r: Run) -> RunModel:
                     finished=r.finished)
 
 
-def add_job_routes(app: FastAPI, jobs: JobManager, runner: Runner) -> None:
-    # -- evaluations ---------------------------------------------------------------------------------------------
-    @app.post("/api/evaluations", response_model=EvaluationModel, status_code=201,
-              responses=responses(400, 404, 409, 422, 503),
-              summary="Evaluate a checkpoint on a split or environments, in a separate process")
-    def create_evaluation(request: EvaluationRequest) -> EvaluationModel:
-        checkpoint = request.checkpoint
-        if request.run_id is not None and checkpoint is None:
-            run = jobs.run(request.run_id)
-            if run.status != "finished":
-                raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
-            checkpoint = run.checkpoint
-        e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
-                                  request.baseline_id, request.run_id, request.workers, request.mirror_ensemble)
-        return evaluation_model(jobs, e)
+# -- evaluations ---------------------------------------------------------------------------------------------
+@router.post("/api/evaluations", response_model=EvaluationModel, status_code=201,
+             responses=responses(400, 404, 409, 422, 503),
+             summary="Evaluate a checkpoint on a split or environments, in a separate process")
+def create_evaluation(request: EvaluationRequest, jobs: Jobs) -> EvaluationModel:
+    checkpoint = request.checkpoint
+    if request.run_id is not None and checkpoint is None:
+        run = jobs.run(request.run_id)
+        if run.status != "finished":
+            raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
+        checkpoint = run.checkpoint
+    e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
+                              request.baseline_id, request.run_id, request.workers, request.mirror_ensemble)
+    return evaluation_model(jobs, e)
 
-    @app.get("/api/evaluations", response_model=list[EvaluationModel], responses=responses(503),
-             summary="Every evaluation recorded")
-    def list_evaluations() -> list[EvaluationModel]:
-        return [evaluation_model(jobs, e) for e in jobs.db.evaluations()]
 
-    @app.post("/api/evaluations/import", response_model=EvaluationModel, status_code=201,
-              responses=responses(400, 403, 404, 413, 422, 503),
-              summary="Record the results of `gsmn eval --json` (and its --record folder) as an evaluation")
-    def import_evaluation(request: ImportRequest) -> EvaluationModel:
-        return evaluation_model(jobs, jobs.import_evaluation(request.path, request.record_dir))
+@router.get("/api/evaluations", response_model=list[EvaluationModel], responses=responses(503),
+            summary="Every evaluation recorded")
+def list_evaluations(jobs: Jobs) -> list[EvaluationModel]:
+    return [evaluation_model(jobs, e) for e in jobs.db.evaluations()]
 
-    @app.get("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
-             responses=responses(404, 422, 503),
-             summary="Status, progress, summary so far and attribution counts")
-    def get_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
-        return evaluation_model(jobs, jobs.evaluation(evaluation_id))
 
-    @app.delete("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
-                responses=responses(404, 409, 422, 503),
-                summary="Cancel a running evaluation (its process group gets SIGTERM, then SIGKILL)")
-    def cancel_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
-        return evaluation_model(jobs, jobs.cancel_evaluation(evaluation_id))
+@router.post("/api/evaluations/import", response_model=EvaluationModel, status_code=201,
+             responses=responses(400, 403, 404, 413, 422, 503),
+             summary="Record the results of `gsmn eval --json` (and its --record folder) as an evaluation")
+def import_evaluation(request: ImportRequest, jobs: Jobs) -> EvaluationModel:
+    return evaluation_model(jobs, jobs.import_evaluation(request.path, request.record_dir))
 
-    @app.post("/api/evaluations/{evaluation_id:int}/resume", response_model=EvaluationModel,
-              responses=responses(404, 409, 422, 503),
-              summary="Fly the rest of a cancelled or failed evaluation, keeping the episodes it had finished")
-    def resume_evaluation(evaluation_id: EvaluationId) -> EvaluationModel:
-        return evaluation_model(jobs, jobs.resume_evaluation(evaluation_id))
 
-    @app.get("/api/evaluations/{evaluation_id:int}/episodes", response_model=list[EpisodeModel],
-             responses=responses(404, 422, 503),
-             summary="Its episodes in the order flown, with attribution; filters as in the failure browser")
-    def list_evaluation_episodes(evaluation_id: EvaluationId, failed_only: bool = False,
-                                 landmark: Annotated[Text | None, Query(max_length=200)] = None,
-                                 side: Literal["left", "right", "front", "back"] | None = None,
-                                 ambiguous: bool | None = None,
-                                 stage: Literal[STAGES] | None = None,
-                                 entered_region: bool | None = None) -> list[EpisodeModel]:
-        jobs.evaluation(evaluation_id)
-        return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
-                                                             stage, entered_region)]
+@router.get("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
+            responses=responses(404, 422, 503),
+            summary="Status, progress, summary so far and attribution counts")
+def get_evaluation(evaluation_id: EvaluationId, jobs: Jobs) -> EvaluationModel:
+    return evaluation_model(jobs, jobs.evaluation(evaluation_id))
 
-    @app.post("/api/evaluations/{evaluation_id:int}/replay", response_model=Replayed, status_code=201,
-              responses=responses(400, 404, 409, 422, 503),
-              summary="Fly an episode of the evaluation again in the live view, with its maps")
-    def replay(evaluation_id: EvaluationId, request: ReplayRequest) -> Replayed:
-        e = jobs.evaluation(evaluation_id)
-        if jobs.db.episode(evaluation_id, request.env_id) is None:
-            raise NotFound(f"evaluation {evaluation_id} has no episode in environment {request.env_id}")
-        policy, checkpoint = replay_policy(e)
-        episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint), COMMAND_TIMEOUT)
-        return Replayed(episode_id=episode.id, env_id=request.env_id, policy=policy, checkpoint=checkpoint)
 
-    @app.get("/api/evaluations/{before_id:int}/compare/{after_id:int}", responses=responses(404, 422, 503),
-             summary="Before/after: the episodes two evaluations share, side by side")
-    def compare(before_id: EvaluationId, after_id: EvaluationId) -> dict:
-        return clean(jobs.compare(before_id, after_id))
+@router.delete("/api/evaluations/{evaluation_id:int}", response_model=EvaluationModel,
+               responses=responses(404, 409, 422, 503),
+               summary="Cancel a running evaluation (its process group gets SIGTERM, then SIGKILL)")
+def cancel_evaluation(evaluation_id: EvaluationId, jobs: Jobs) -> EvaluationModel:
+    return evaluation_model(jobs, jobs.cancel_evaluation(evaluation_id))
 
-    # -- runs ----------------------------------------------------------------------------------------------------
-    @app.post("/api/runs", response_model=RunModel, status_code=201, responses=responses(400, 404, 409, 422, 503),
-              summary="Launch DAggerFM fine-tuning from a checkpoint, in a separate process")
-    def create_run(request: RunRequest) -> RunModel:
-        fields = request.model_dump(exclude={"preset", "checkpoint", "env_ids", "evaluation_id"})
-        settings = run_settings(request.preset, **fields)
-        return run_model(jobs.start_run(settings, request.checkpoint, request.env_ids, request.evaluation_id))
 
-    @app.get("/api/runs", response_model=list[RunModel], responses=responses(503),
-             summary="Every fine-tuning run recorded")
-    def list_runs() -> list[RunModel]:
-        return [run_model(r) for r in jobs.db.runs()]
+@router.post("/api/evaluations/{evaluation_id:int}/resume", response_model=EvaluationModel,
+             responses=responses(404, 409, 422, 503),
+             summary="Fly the rest of a cancelled or failed evaluation, keeping the episodes it had finished")
+def resume_evaluation(evaluation_id: EvaluationId, jobs: Jobs) -> EvaluationModel:
+    return evaluation_model(jobs, jobs.resume_evaluation(evaluation_id))
 
-    @app.get("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 422, 503),
-             summary="Status, progress, metrics so far, and the checkpoint when done")
-    def get_run(run_id: RunId) -> RunModel:
-        return run_model(jobs.run(run_id))
 
-    @app.delete("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 409, 422, 503),
-                summary="Cancel a run (SIGTERM, then SIGKILL, to its process group); its folder stays")
-    def cancel_run(run_id: RunId) -> RunModel:
-        return run_model(jobs.cancel_run(run_id))
+@router.get("/api/evaluations/{evaluation_id:int}/episodes", response_model=list[EpisodeModel],
+            responses=responses(404, 422, 503),
+            summary="Its episodes in the order flown, with attribution; filters as in the failure browser")
+def list_evaluation_episodes(evaluation_id: EvaluationId, jobs: Jobs, failed_only: bool = False,
+                             landmark: Annotated[Text | None, Query(max_length=200)] = None,
+                             side: Literal["left", "right", "front", "back"] | None = None,
+                             ambiguous: bool | None = None,
+                             stage: Literal[STAGES] | None = None,
+                             entered_region: bool | None = None) -> list[EpisodeModel]:
+    jobs.evaluation(evaluation_id)
+    return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
+                                                         stage, entered_region)]
 
-    @app.post("/api/runs/{run_id:int}/resume", response_model=RunModel, responses=responses(404, 409, 422, 503),
-              summary="Continue a cancelled or failed run from the iterations its folder saved")
-    def resume_run(run_id: RunId) -> RunModel:
-        return run_model(jobs.resume_run(run_id))
+
+@router.post("/api/evaluations/{evaluation_id:int}/replay", response_model=Replayed, status_code=201,
+             responses=responses(400, 404, 409, 422, 503),
+             summary="Fly an episode of the evaluation again in the live view, with its maps")
+def replay(evaluation_id: EvaluationId, request: ReplayRequest, jobs: Jobs, runner: TheRunner) -> Replayed:
+    e = jobs.evaluation(evaluation_id)
+    if jobs.db.episode(evaluation_id, request.env_id) is None:
+        raise NotFound(f"evaluation {evaluation_id} has no episode in environment {request.env_id}")
+    policy, checkpoint = replay_policy(e)
+    episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint), COMMAND_TIMEOUT)
+    return Replayed(episode_id=episode.id, env_id=request.env_id, policy=policy, checkpoint=checkpoint)
+
+
+@router.get("/api/evaluations/{before_id:int}/compare/{after_id:int}", responses=responses(404, 422, 503),
+            summary="Before/after: the episodes two evaluations share, side by side")
+def compare(before_id: EvaluationId, after_id: EvaluationId, jobs: Jobs) -> dict:
+    return clean(jobs.compare(before_id, after_id))
+
+
+# -- runs ----------------------------------------------------------------------------------------------------
+@router.post("/api/runs", response_model=RunModel, status_code=201, responses=responses(400, 404, 409, 422, 503),
+             summary="Launch DAggerFM fine-tuning from a checkpoint, in a separate process")
+def create_run(request: RunRequest, jobs: Jobs) -> RunModel:
+    fields = request.model_dump(exclude={"preset", "checkpoint", "env_ids", "evaluation_id"})
+    settings = run_settings(request.preset, **fields)
+    return run_model(jobs.start_run(settings, request.checkpoint, request.env_ids, request.evaluation_id))
+
+
+@router.get("/api/runs", response_model=list[RunModel], responses=responses(503),
+            summary="Every fine-tuning run recorded")
+def list_runs(jobs: Jobs) -> list[RunModel]:
+    return [run_model(r) for r in jobs.db.runs()]
+
+
+@router.get("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 422, 503),
+            summary="Status, progress, metrics so far, and the checkpoint when done")
+def get_run(run_id: RunId, jobs: Jobs) -> RunModel:
+    return run_model(jobs.run(run_id))
+
+
+@router.delete("/api/runs/{run_id:int}", response_model=RunModel, responses=responses(404, 409, 422, 503),
+               summary="Cancel a run (SIGTERM, then SIGKILL, to its process group); its folder stays")
+def cancel_run(run_id: RunId, jobs: Jobs) -> RunModel:
+    return run_model(jobs.cancel_run(run_id))
+
+
+@router.post("/api/runs/{run_id:int}/resume", response_model=RunModel, responses=responses(404, 409, 422, 503),
+             summary="Continue a cancelled or failed run from the iterations its folder saved")
+def resume_run(run_id: RunId, jobs: Jobs) -> RunModel:
+    return run_model(jobs.resume_run(run_id))
 
 
 def replay_policy(e: Evaluation) -> tuple[str, str | None]:

@@ -1,0 +1,85 @@
+"""The response models that several route modules answer with: an episode as queued (`EpisodeCreated`) and its
+summary (`EpisodeSummary`, made from a live episode by `summary`), and the path parameters they share.
+
+The models only one route module uses live in that module (`app.api.episodes`, `app.api.maps`, `app.api.kept`,
+`app.api.comparisons`, `app.api.jobs`); what every input may be is in `app.api.schema`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, Field
+
+from app.api.schema import path_id
+from app.live.recording import Episode, EpisodeResult
+
+MAX_STEP = 100_000  # more than any horizon
+EpisodeId = Annotated[int, path_id("episode")]
+Policy = Literal["model", "mirror", "expert"]
+
+TYPED = "the instruction as typed, where one was (null: the environment's own); `instruction` is the template flown"
+
+
+class EpisodeCreated(BaseModel):
+    id: int
+    status: str
+    env_id: int
+    instruction: str = Field(description="the template flown: what the model reads (gsmn.task.understand)")
+    typed_instruction: str | None = Field(None, description=TYPED)
+    policy: str
+
+
+class ResultModel(BaseModel):
+    success: bool
+    landmark_success: bool
+    goal_distance: float = Field(description="m, final position to the demonstration's goal")
+    landmark_distance: float = Field(description="m, final position to the named landmark's centre")
+    final_side: str = Field(description="quadrant of the final position around the named landmark")
+    steps: int
+    stopped: bool = Field(description="the policy said STOP (else the horizon ended the episode)")
+    final_x: float
+    final_y: float
+    stop_probability: float | None = Field(description="the model's P(STOP) at the last step")
+
+
+class EpisodeSummary(BaseModel):
+    id: int
+    status: Literal["queued", "running", "paused", "finished", "cancelled", "failed"]
+    env_id: int
+    split: str
+    instruction: str = Field(description="the template flown: what the model reads (gsmn.task.understand)")
+    typed_instruction: str | None = Field(None, description=TYPED)
+    landmark: str
+    side: str
+    goal_x: float
+    goal_y: float
+    policy: str
+    system: str
+    checkpoint: str | None
+    steps: int = Field(description="steps recorded so far")
+    horizon: int
+    steps_per_second: float | None
+    result: ResultModel | None
+    error: str | None
+    pinned: bool = Field(False, description="kept whatever the retention limit (PUT /api/episodes/{id}/pin)")
+    created: float | None = Field(None, description="unix time it was queued or started flying")
+    bytes: int | None = Field(None, description="what its steps take in the record (null: not written yet)")
+    kept_steps: int | None = Field(None, description="the steps the record holds (null: no record); below `steps` "
+                                   "while steps wait to be written, or where some could not be kept")
+    keeping: str | None = Field(None, description="why some of its steps are not in the record (waiting for a full "
+                                "disk, say, or given up); null when they all are")
+
+
+def _result(r: EpisodeResult | None) -> ResultModel | None:
+    return ResultModel(**r.__dict__) if r is not None else None
+
+
+def summary(e: Episode) -> EpisodeSummary:
+    i = e.task.instruction
+    return EpisodeSummary(id=e.id, status=e.status, env_id=e.env_id, split=e.task.world.split,
+                          instruction=i.text, typed_instruction=e.typed, landmark=i.noun_phrase, side=i.side,
+                          goal_x=i.goal_x, goal_y=i.goal_y,
+                          policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
+                          horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
+                          error=e.error, created=e.created)
