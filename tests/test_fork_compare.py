@@ -19,7 +19,7 @@ from app.live.fixtures import make_untrained_checkpoint
 from app.live.recording import FINISHED
 from app.live.runner import Runner
 from gsmn.config import preset, with_overrides
-from gsmn.task.instructions import parse_instruction
+from gsmn.task.understand import parse_instruction
 
 HORIZON = 36
 
