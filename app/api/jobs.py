@@ -3,8 +3,8 @@
 is reached or there is nothing to cancel or resume, 413 for a file too large to import, 422 for bad input, 503 when
 the record cannot be written (`app.api.schema` says what every input may be).
 
-`app.api.app` includes `router` first, and only when the server has a job manager. `replay_policy` also tells the
-page (`app.page.jobs_view`) who flies a replay.
+`app.api.app` includes `router` first, and only when the server has a job manager. Who flies a replay is
+`app.jobs.results.replay_policy`, which the page asks too.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from app.api.deps import COMMAND_TIMEOUT, Jobs, TheRunner
 from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
-from app.jobs.settings import MAX_ROLLOUTS, run_settings
+from app.jobs.results import replay_policy
+from app.jobs.settings import MAX_ROLLOUTS, RUN_PRESETS, run_settings
 from app.live.commands import NotFound, RunnerError, StartEpisode
 from gsmn.attribution import STAGES
 
@@ -113,11 +114,14 @@ class Replayed(BaseModel):
     checkpoint: str | None
 
 
+_PAPER = RUN_PRESETS["paper"]
+
+
 class RunRequest(Strict):
-    preset: Literal["tiny", "small", "paper"] = Field("tiny", description="tiny: a minute or two on a 2-core "
-                                                      "machine; small: tens of minutes; paper: the original's "
-                                                      f"settings, whose 150 x 24 rollouts are more than the "
-                                                      f"{MAX_ROLLOUTS} the dashboard launches: give fewer iterations")
+    preset: Literal[tuple(RUN_PRESETS)] = Field(
+        "tiny", description=f"tiny: a minute or two on a 2-core machine; small: tens of minutes; paper: the original's "
+        f"settings, whose {_PAPER.iterations} x {_PAPER.rollouts_per_iteration} rollouts are more than the "
+        f"{MAX_ROLLOUTS} the dashboard launches: give fewer iterations")
     iterations: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description=f"iterations x N_D at most "
                                    f"{MAX_ROLLOUTS}")
     rollouts_per_iteration: int | None = Field(None, ge=1, le=MAX_ROLLOUTS, description="N_D")
@@ -304,13 +308,3 @@ def cancel_run(run_id: RunId, jobs: Jobs) -> RunModel:
              summary="Continue a cancelled or failed run from the iterations its folder saved")
 def resume_run(run_id: RunId, jobs: Jobs) -> RunModel:
     return run_model(jobs.resume_run(run_id))
-
-
-def replay_policy(e: Evaluation) -> tuple[str, str | None]:
-    """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint (as a mirror
-    ensemble if the evaluation flew one)."""
-    if e.system == "oracle":
-        return "expert", None
-    if not e.checkpoint:
-        raise RunnerError(f"evaluation {e.id} ({e.system}) names no checkpoint to fly again")
-    return ("mirror" if e.mirror_ensemble else "model"), e.checkpoint

@@ -324,7 +324,7 @@ def search(db: Database, env_id: int | None = None, instruction: str | None = No
 
 
 def row_summary(row) -> dict[str, Any]:
-    """A kept row as the API's episode summary fields (app.api.episodes.EpisodeSummary)."""
+    """A kept row as the API's episode summary fields (app.api.models.EpisodeSummary)."""
     task = json.loads(row["task"])
     i = task["instruction"]
     return {"id": int(row["id"]), "status": row["status"], "env_id": int(row["env_id"]), "split": row["split"],

@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 
 from app.jobs.db import Database, EpisodeRow, Evaluation
+from app.live.commands import RunnerError
 from gsmn.config import RunConfig
 from gsmn.task.metrics import record_region_steps, region_stop_probability
 
@@ -155,3 +156,13 @@ def _stage_counts(briefs) -> dict[str, int]:
         if not b["success"] and b["stage"] in counts:
             counts[b["stage"]] += 1
     return counts
+
+
+def replay_policy(e: Evaluation) -> tuple[str, str | None]:
+    """Who flies a replay of an evaluation's episode: the expert for the oracle, else its checkpoint (as a mirror
+    ensemble if the evaluation flew one)."""
+    if e.system == "oracle":
+        return "expert", None
+    if not e.checkpoint:
+        raise RunnerError(f"evaluation {e.id} ({e.system}) names no checkpoint to fly again")
+    return ("mirror" if e.mirror_ensemble else "model"), e.checkpoint

@@ -85,7 +85,8 @@ class Runner:
         self.max_queued = max_queued
         self.checkpoints = Checkpoints(config, checkpoints_root, checkpoint, require_checkpoint)
         self.pairs = Comparisons(self)
-        self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)  # app.jobs.kept.KeptStore
+        # in the dashboard, the record's store (app.jobs.kept_store.KeptStore)
+        self.episodes = episodes if episodes is not None else EpisodeStore(max_episodes)
         self.listeners: list[RunnerListener] = []
         self.speed: float | None = None
         self.shown: WorldShown | None = None

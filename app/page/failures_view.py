@@ -11,8 +11,8 @@ import math
 import viser
 import viser.uplot
 
-from app.api.jobs import replay_policy
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
+from app.jobs.results import replay_policy
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE

@@ -41,7 +41,7 @@ class FinetuneTab:
                 self.run_checkpoint = gui.add_dropdown("Start from", self._checkpoint_choices(expert=False))
                 self.run_preset = gui.add_dropdown("Preset", tuple(RUN_PRESETS), initial_value="tiny",
                                                    hint="tiny: a minute or two here; small: tens of minutes; paper: "
-                                                        "the original's 150 iterations")
+                                                        f"the original's {RUN_PRESETS['paper'].iterations} iterations")
                 s = RUN_PRESETS["tiny"]
                 self.run_iterations = gui.add_number("Iterations", s.iterations, min=1, max=10000, step=1)
                 self.run_nd = gui.add_number("N_D (rollouts/iter)", s.rollouts_per_iteration, min=1, step=1,
