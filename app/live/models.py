@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from app.live.commands import CheckpointInfo, RunnerError
-from gsmn.model.readout import Heads
 from gsmn.config import RunConfig
 from gsmn.experiments.recipe import describe_stage, read_stage
+from gsmn.model.readout import Heads
 from gsmn.world.landmarks import CATALOGUE
 
 
