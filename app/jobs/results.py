@@ -8,7 +8,7 @@ import logging
 import math
 from pathlib import Path
 
-from app.jobs.db import Database, EpisodeRow, Evaluation
+from app.jobs.db import FINISHED, Database, EpisodeRow, Evaluation
 from app.live.commands import RunnerError
 from gsmn.config import RunConfig
 from gsmn.task.metrics import record_region_steps, region_stop_probability
@@ -124,7 +124,8 @@ def compare(db: Database, before: Evaluation, after: Evaluation) -> dict:
                          "after": _brief(b[env_id])})
     fixed = sum(1 for r in rows if not r["before"]["success"] and r["after"]["success"])
     broken = sum(1 for r in rows if r["before"]["success"] and not r["after"]["success"])
-    return {"before": before.id, "after": after.id, "episodes": rows, "fixed": fixed, "broken": broken,
+    return {"before": before.id, "after": after.id, "before_checkpoint": before.checkpoint,
+            "after_checkpoint": after.checkpoint, "episodes": rows, "fixed": fixed, "broken": broken,
             "before_success": _rate(r["before"]["success"] for r in rows),
             "after_success": _rate(r["after"]["success"] for r in rows),
             "before_mean_distance": _mean(r["before"]["goal_distance"] for r in rows),
@@ -166,3 +167,26 @@ def replay_policy(e: Evaluation) -> tuple[str, str | None]:
     if not e.checkpoint:
         raise RunnerError(f"evaluation {e.id} ({e.system}) names no checkpoint to fly again")
     return ("mirror" if e.mirror_ensemble else "model"), e.checkpoint
+
+
+def same_checkpoint(a: str | None, b: str | None) -> bool:
+    """Whether two recorded checkpoint paths name one folder."""
+    if a is None or b is None:
+        return a == b
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):
+        return a == b
+
+
+def before_for_run(db: Database, run, baseline: Evaluation) -> Evaluation | None:
+    """The evaluation to put before a run's checkpoint: `baseline` when it flew the checkpoint the run started from,
+    else a finished evaluation of that starting checkpoint on the same environments, flown the same way (None: there
+    is none yet, so before/after would credit the change of checkpoint to the fine-tune)."""
+    if same_checkpoint(baseline.checkpoint, run.init_checkpoint):
+        return baseline
+    for e in reversed(db.evaluations((FINISHED,))):
+        if (same_checkpoint(e.checkpoint, run.init_checkpoint)
+                and sorted(e.env_ids) == sorted(baseline.env_ids) and e.mirror_ensemble == baseline.mirror_ensemble):
+            return e
+    return None

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import base64
 import html
+from pathlib import Path
 
 import numpy as np
 import viser
@@ -41,16 +42,33 @@ PARTNER_RGB = (200, 40, 200)
 AS_ORIGINAL = "As the original"
 
 
-def cameras_html(jpeg_a: bytes, jpeg_b: bytes, step_a: int, step_b: int) -> str:
-    """Both camera images side by side, the shown episode's (blue) first."""
-    def one(jpeg: bytes, colour: str, cls: str, step: int) -> str:
+def who_flew(e: Episode, models: dict) -> str:
+    """Who flew an episode, in words: the expert, or the model by its checkpoint's name (and whether it flew as a
+    mirror ensemble). `models`: the runner's loaded models by resolved path."""
+    if e.policy == "expert":
+        return "expert"
+    m = models.get(e.checkpoint) if e.checkpoint else None
+    name = m.name if m is not None else (Path(e.checkpoint).name if e.checkpoint else "?")
+    return f"model {name}" + (", mirror ensemble" if e.policy == "mirror" else "")
+
+
+def step_words(t: int, shown: int) -> str:
+    """'step 12', or what it is when the timeline (at `t`) is past the episode's last step `shown`."""
+    return f"step {shown}" if shown == t else f"step {shown}, its last (it ended before step {t})"
+
+
+def cameras_html(jpeg_a: bytes, jpeg_b: bytes, step_a: int, step_b: int, caption_a: str = "",
+                 caption_b: str = "") -> str:
+    """Both camera images side by side, the shown episode's (blue) first, each captioned with whose it is."""
+    def one(jpeg: bytes, colour: str, cls: str, step: int, caption: str) -> str:
         src = "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
         return (f'<div><img class="{cls}" data-step="{step}" src="{src}" style="{PIXELATED};border-radius:3px;'
-                f'border:3px solid {colour}"/></div>')
+                f'border:3px solid {colour}"/><div class="{cls}-caption" style="font-size:12px;color:{colour}">'
+                f"{html.escape(caption)}</div></div>")
 
     return (f'<div style="display:grid;grid-template-columns:1fr 1fr;gap:6px;padding-right:10px">'
-            f'{one(jpeg_a, "#2870f5", "gsmn-camera-a", step_a)}{one(jpeg_b, "#c828c8", "gsmn-camera-b", step_b)}'
-            f"</div>")
+            f'{one(jpeg_a, "#2870f5", "gsmn-camera-a", step_a, caption_a)}'
+            f'{one(jpeg_b, "#c828c8", "gsmn-camera-b", step_b, caption_b)}</div>')
 
 
 class CompareView:
@@ -223,16 +241,29 @@ class CompareView:
         if self.note.content != note:
             self.note.content = note
         self.summary.content = self._summary(episode, partner, part, t)
-        shown = episode.steps[max(0, min(t, len(episode.steps) - 1))]
-        self.partner_camera.content = cameras_html(shown.camera_jpeg, record.camera_jpeg, t, pt)
-        model = self.viewer.runner.models.get(partner.checkpoint) if partner.checkpoint else None
+        self._draw_partner_views(episode, partner, t, pt)
+        self._plot_figures(episode)
+
+    def _draw_partner_views(self, episode: Episode, partner: Episode, t: int, pt: int) -> None:
+        """Both cameras, each saying whose it is and at which step, and the magenta episode's maps under a title
+        that says the same (its last step where it ended before the timeline's)."""
+        models = self.viewer.runner.models
+        at = max(0, min(t, len(episode.steps) - 1))
+        shown, record = episode.steps[at], partner.steps[pt]
+        self.partner_camera.content = cameras_html(
+            shown.camera_jpeg, record.camera_jpeg, at, pt,
+            f"blue: episode {episode.id}, {who_flew(episode, models)}, {step_words(t, at)}",
+            f"magenta: episode {partner.id}, {who_flew(partner, models)}, {step_words(t, pt)}")
+        model = models.get(partner.checkpoint) if partner.checkpoint else None
+        title = (f'<div class="gsmn-partner-title" style="font-size:13px;margin:6px 0 2px"><b style="color:#c828c8">'
+                 f"Magenta's maps</b>: episode {partner.id}, {html.escape(who_flew(partner, models))}, "
+                 f"{step_words(t, pt)}</div>")
         layers = None
         if record.maps is not None and model is not None:
             layers = map_layers(record.maps.maps, model.heads, self.viewer.value_mode.value,
                                 self.viewer.range_mode.value)
-        self.partner_maps.content = maps_html(partner, pt, layers, None, self.viewer._cell_of).replace(
+        self.partner_maps.content = title + maps_html(partner, pt, layers, None, self.viewer._cell_of).replace(
             'class="gsmn-maps"', 'class="gsmn-maps-partner"', 1)
-        self._plot_figures(episode)
 
     def _summary(self, episode: Episode, partner: Episode, part: int | None, t: int) -> str:
         def side(e: Episode, name: str) -> str:
@@ -243,7 +274,7 @@ class CompareView:
                 mark = "✓ success" if r.success else "✗ failure"
                 ended = "STOP" if r.stopped else "horizon"
                 result = f"{mark}: {ended} after {r.steps} steps, {r.goal_distance:.1f} m from the goal"
-            who = {"model": "model", "mirror": "mirror ensemble", "expert": "expert"}[e.policy]
+            who = html.escape(who_flew(e, self.viewer.runner.models))
             return (f"| **{name}** · {who} | episode {e.id}, \"{html.escape(e.instruction)}\" | {result} |")
 
         fork = episode.fork if episode.fork is not None and episode.fork.episode_id == partner.id else None

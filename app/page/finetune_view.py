@@ -11,6 +11,7 @@ import viser
 import viser.uplot
 
 from app.jobs.db import ACTIVE, FAILED, FINISHED, Run
+from app.jobs.results import before_for_run, same_checkpoint
 from app.jobs.settings import RUN_PRESETS, run_settings
 from app.live.commands import RunnerError
 from app.render.jobs_panels import (
@@ -28,6 +29,7 @@ from app.render.jobs_panels import (
     short_path,
 )
 from app.render.panels import error_html
+from gsmn.world.spec import split_of
 
 ENV_TRAIN = "train split"
 
@@ -102,8 +104,24 @@ class FinetuneTab:
             self.run_status.content = error_html(f"**Not started:** {html.escape(str(err))}")
             return
         where = f"{len(env_ids)} failures of evaluation {self.evaluation_id}" if env_ids else "the train split"
-        self.run_status.content = f"Run {r.id} started from {html.escape(short_path(r.init_checkpoint))} on {where}."
+        self.run_status.content = (f"Run {r.id} started from {html.escape(short_path(r.init_checkpoint))} on {where}."
+                                   + self._launch_warnings(r, env_ids))
         self._refresh()
+
+    def _launch_warnings(self, run, env_ids: list[int] | None) -> str:
+        """What a run launched on failures should say at once: failures of another checkpoint, or environments of
+        the test or dev split, which the run then trains on."""
+        if not env_ids:
+            return ""
+        out = []
+        source = self.jobs.db.evaluation(self.evaluation_id) if self.evaluation_id else None
+        if source is not None and not same_checkpoint(source.checkpoint, run.init_checkpoint):
+            out.append(f"These failures are {html.escape(short_path(source.checkpoint))}'s, not the starting "
+                       "checkpoint's: Before/after will first fly the starting checkpoint on them.")
+        held = sorted({split_of(e) for e in env_ids} - {"train"})
+        if held:
+            out.append(f"It trains on {'/'.join(held)} environments: they stop being held out.")
+        return "".join(f"<br>⚠ {w}" for w in out)
 
     def _cancel_run(self) -> None:
         active = self.jobs.db.runs(ACTIVE)
@@ -142,19 +160,37 @@ class FinetuneTab:
                 self.run_note.content = (f"The Episode panel's policy is now **run-{run.id}**: press **Run** there, "
                                          "or replay a failure.")
             return
-        baseline = run.source_evaluation_id or self.evaluation_id
+        self._before_after(run)
+
+    def _before_after(self, run) -> None:
+        """Rerun the run's episodes with its checkpoint, beside the checkpoint it started from on the same ones: when
+        the failures came from another checkpoint's evaluation, that one is flown first, so the change of checkpoint
+        is never credited to the fine-tune."""
+        baseline_id = run.source_evaluation_id or self.evaluation_id
+        baseline = self.jobs.db.evaluation(baseline_id) if baseline_id is not None else None
         if baseline is None:
             self.run_note.content = error_html("No evaluation to compare with: evaluate a checkpoint first.")
             return
-        before = self.jobs.db.evaluation(baseline)
+        before = before_for_run(self.jobs.db, run, baseline)
+        start = short_path(run.init_checkpoint)
         try:  # flown the way the evaluation it reruns was (plain or as a mirror ensemble)
-            e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=baseline, run_id=run.id,
-                                           mirror_ensemble=bool(before and before.mirror_ensemble))
+            if before is None:
+                e = self.jobs.start_evaluation(run.init_checkpoint, None, env_ids=list(baseline.env_ids),
+                                               mirror_ensemble=baseline.mirror_ensemble)
+                self.run_note.content = (
+                    f"The failures came from evaluation {baseline.id} of **{short_path(baseline.checkpoint)}**, "
+                    f"but run-{run.id} started from **{start}**. Evaluation {e.id} flies {start} on the same "
+                    f"{len(baseline.env_ids)} environments first; press **Before/after** again once it is done.")
+                self._refresh()
+                return
+            e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=before.id, run_id=run.id,
+                                           mirror_ensemble=before.mirror_ensemble)
         except RunnerError as err:
             self.run_note.content = error_html(f"**Not started:** {html.escape(str(err))}")
             return
-        self.compare_ids = (baseline, e.id)
-        self.run_note.content = f"Evaluation {e.id} reruns the episodes of evaluation {baseline} with run-{run.id}."
+        self.compare_ids = (before.id, e.id)
+        self.run_note.content = (f"Evaluation {e.id} reruns the episodes of evaluation {before.id} ({start}, where "
+                                 f"run-{run.id} started) with run-{run.id}.")
         self._refresh()
 
     def _compare_replay(self, which: str) -> None:

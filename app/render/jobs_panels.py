@@ -10,14 +10,17 @@ import math
 import numpy as np
 
 from app.jobs.db import ACTIVE, FINISHED, EpisodeRow, Evaluation, Run
+from app.jobs.results import same_checkpoint
 from app.jobs.supervisor import resumable
 from app.render.panels import region_text
-from app.render.truth import went_wrong_text
+from app.render.truth import TRUTH_ROW, went_wrong_text
 from gsmn.attribution import STAGE_COLOURS, STAGE_TITLES, reported_stages
 from gsmn.world.spec import split_of
 
 
-def short_path(path: str) -> str:
+def short_path(path: str | None) -> str:
+    if path is None:
+        return "the expert"
     parts = path.rstrip("/").split("/")
     return "/".join(parts[-3:]) if len(parts) > 3 else path
 
@@ -144,6 +147,29 @@ def both_readings(r: EpisodeRow) -> str:
             f"explain why it did not come back.</div>")
 
 
+def _attribution_rows(a: dict) -> list[tuple[str, str]]:
+    """The attribution's evidence, of the named landmark and the goal, and the whole maps' figures apart."""
+    if a.get("perceived", False) is None:
+        perceived = "seen; no trained reading (trained without J_percept)"
+    else:
+        perceived = ("yes" if a["perceived"] else "no") + (
+            f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
+            if a["observed"] else " (never seen)")
+    if a.get("grounded", False) is None:
+        grounded = "no trained reading (trained without J_ground)"
+    else:
+        grounded = ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
+            f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})" if a.get("other_landmark")
+            else ")")
+    goal = ("no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
+            else ("right" if a["goal_right"] else "wrong")
+            + f" (peak {a['goal_peak_error']:.1f} m from the goal, P {a['goal_peak_p']:.2f})")
+    rows = [("named landmark perceived", perceived), ("named landmark grounded", grounded), ("goal map", goal)]
+    if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.render.truth)
+        rows.append((TRUTH_ROW, went_wrong_text(a["failed_from"], ("<b>", "</b>"))))
+    return rows
+
+
 def episode_html(r: EpisodeRow, note: str) -> str:
     a = r.attribution or {}
     rows = [("instruction", html.escape(r.instruction)), ("success", "yes" if r.success else "no"),
@@ -153,20 +179,7 @@ def episode_html(r: EpisodeRow, note: str) -> str:
     if not r.success and r.region_steps is not None:
         rows.append(("success region", region_text(r.region_steps, r.region_stop_p, ("<b>", "</b>"))))
     if a:
-        rows += [("perceived", "seen; no trained reading (trained without J_percept)"
-                  if a.get("perceived", False) is None
-                  else ("yes" if a["perceived"] else "no") + (
-                    f" (read as {html.escape(a['top_class'])}, the landmark ranks {a['landmark_class_rank']})"
-                    if a["observed"] else " (never seen)")),
-                 ("grounded", "no trained reading (trained without J_ground)" if a.get("grounded", False) is None
-                  else ("yes" if a["grounded"] else "no") + f" (P(named) {a['p_named']:.2f}" + (
-                     f" vs {a['p_named_other']:.2f} at the {html.escape(a['other_landmark'])})"
-                     if a.get("other_landmark") else ")")),
-                 ("goal map", "no trained reading (trained without J_plan)" if a.get("goal_right", False) is None
-                  else ("right" if a["goal_right"] else "wrong") + f" (peak {a['goal_peak_error']:.1f} m from the "
-                                                                    f"goal, P {a['goal_peak_p']:.2f})")]
-        if a.get("failed_from"):  # from the per-step agreement with the ground truth (app.render.truth)
-            rows.append(("went wrong", went_wrong_text(a["failed_from"], ("<b>", "</b>"))))
+        rows += _attribution_rows(a)
     stage = r.stage or ("success" if r.success else "not attributed (no maps recorded)")
     both = both_readings(r)
     verdict = (f"<div style='font-weight:600;color:{_STAGE_COLOURS.get(r.stage or '', '#1e8449')}'>"
@@ -278,13 +291,29 @@ def compare_html(c: dict, after: Evaluation | None, run: Run | None = None) -> s
         return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.1f} m"
 
     return (f"<div class='gsmn-compare' data-before='{c['before']}' data-after='{c['after']}' style='font-size:12px'>"
-            f"{trained_on_note(c, run)}"
+            f"{who_note(c, run)}{trained_on_note(c, run)}"
             f"<div style='font-size:13px;margin-bottom:4px'>Evaluation {c['before']} → {c['after']}: success "
             f"<b>{_pct(c['before_success'])} → {_pct(c['after_success'])}</b>, mean distance "
             f"{dist(c['before_mean_distance'])} → {dist(c['after_mean_distance'])}; {c['fixed']} fixed, "
             f"{c['broken']} broken.</div><table><tr><th style='text-align:left'>env</th><th style='text-align:left'>"
             f"before</th><th style='text-align:left'>after</th></tr>{rows}</table>"
             f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Replay a row with the buttons below.</div></div>")
+
+
+def who_note(c: dict, run: Run | None) -> str:
+    """Which checkpoints before and after are, and a warning when before is not the one the run started from (the
+    difference would then mix a change of checkpoint with the fine-tune)."""
+    before, after = short_path(c.get("before_checkpoint")), short_path(c.get("after_checkpoint"))
+    if run is not None:
+        after = f"run-{run.id}, fine-tuned from {short_path(run.init_checkpoint)}"
+    out = (f"<div class='gsmn-who' style='margin-bottom:4px'><b>Before</b>: evaluation {c['before']}, "
+           f"{html.escape(before)} · <b>After</b>: evaluation {c['after']}, {html.escape(after)}.</div>")
+    if run is not None and not same_checkpoint(c.get("before_checkpoint"), run.init_checkpoint):
+        out += (f"<div class='gsmn-unfair' style='margin-bottom:4px;color:#c0392b'>Before is not the checkpoint "
+                f"run-{run.id} started from: the difference mixes the change of checkpoint with the fine-tune. "
+                f"Press Before/after again to fly {html.escape(short_path(run.init_checkpoint))} on these "
+                f"episodes.</div>")
+    return out
 
 
 def trained_on_note(c: dict, run: Run | None) -> str:
@@ -298,6 +327,11 @@ def trained_on_note(c: dict, run: Run | None) -> str:
         return (f"<div class='gsmn-trained-on' style='margin-bottom:4px'>run-{run.id} trained on the train split; "
                 f"these {len(compared)} episodes are {held}.</div>")
     trained = compared & set(run.env_ids)
+    test = sorted(e for e in run.env_ids if split_of(e) != "train")
+    held_out = (f"<div class='gsmn-test-trained' style='margin-bottom:4px;color:#c0392b'>run-{run.id} trained on "
+                f"{len(test)} {'/'.join(sorted({split_of(e) for e in test}))} environment"
+                f"{'s' if len(test) != 1 else ''}: they are no longer held out, and no figure on them measures "
+                f"generalisation.</div>") if test else ""
     if trained == compared:
         what = (f"all {len(compared)} of these episodes are ones run-{run.id} trained on: the figures are on its "
                 f"training episodes, not held-out performance")
@@ -305,4 +339,4 @@ def trained_on_note(c: dict, run: Run | None) -> str:
         what = f"{len(trained)} of these {len(compared)} episodes are ones run-{run.id} trained on"
     else:
         what = f"none of these episodes were trained on (run-{run.id} trained on {len(run.env_ids)} others)"
-    return f"<div class='gsmn-trained-on' style='margin-bottom:4px;color:#9a6b00'>{what}.</div>"
+    return f"{held_out}<div class='gsmn-trained-on' style='margin-bottom:4px;color:#9a6b00'>{what}.</div>"

@@ -102,20 +102,26 @@ def went_wrong(figures: list[Agreement | None], heads: MapHeads | None = None) -
 
 
 STAGE_OF_FIGURE = {"perception": "perception", "relevance": "grounding", "goal": "goal"}
-FIGURE_WORDS = {"perception": "perceived", "grounding": "grounded", "goal": "goal map"}
+# The truth figures read whole maps (every seen landmark cell, the relevance over the field, the goal mass), where the
+# attribution reads the named landmark and the goal: so their words differ, and "right" or "wrong" is said of neither.
+FIGURE_WORDS = {"perception": "landmarks read", "grounding": "relevance", "goal": "goal mass"}
+TRUTH_ROW = "whole maps vs truth"
 
 
 def went_wrong_text(steps: dict[str, int | None] | None, bold: tuple[str, str] = ("**", "**")) -> str:
-    """"perceived: right to the end · grounded: wrong from step 23 · goal map: wrong from step 41", keyed by stage
-    (`Attribution.failed_from`) or by figure (`went_wrong`)."""
+    """"landmarks read: above chance to the end · relevance: at chance from step 23 · goal mass: at chance from step
+    41", keyed by stage (`Attribution.failed_from`) or by figure (`went_wrong`): from which step each whole-map figure
+    stayed no better than chance (`gsmn.analysis.truth.first_failures`)."""
     if not steps:
         return ""
+    if all(step is None for step in steps.values()):
+        return "every figure above chance to the end"
     parts = []
     for key, step in steps.items():
         stage = STAGE_OF_FIGURE.get(key, key)
         words = FIGURE_WORDS.get(stage, stage)
-        parts.append(f"{words}: right at the end" if step is None else
-                     f"{words}: wrong from step {bold[0]}{step}{bold[1]}")
+        parts.append(f"{words}: above chance to the end" if step is None else
+                     f"{words}: at chance from step {bold[0]}{step}{bold[1]}")
     return " · ".join(parts)
 
 
@@ -133,4 +139,4 @@ def result_rows(episode: Episode, heads: MapHeads | None, success_radius: float 
         return "n/a" if x is None else f"{x:.2f}"
 
     return (f"| truth at the end | perception {fmt(last.perception)}, relevance AUC {fmt(last.relevance)}, goal mass "
-            f"{fmt(last.goal)} |\n| went wrong | {went_wrong_text(went_wrong(figures, heads))} |\n")
+            f"{fmt(last.goal)} |\n| {TRUTH_ROW} | {went_wrong_text(went_wrong(figures, heads))} |\n")

@@ -1,0 +1,116 @@
+"""What the page says must be honest about what it compares (issue: the page's trust defects): a before/after names
+both checkpoints and never credits a change of checkpoint to a fine-tune, warns when the run trained on test or dev
+environments; a comparison names who flew each side and at which step each view is."""
+
+from __future__ import annotations
+
+from test_jobs_units import episode
+
+from app.jobs.db import Database
+from app.jobs.results import before_for_run, compare, same_checkpoint
+from app.page.compare_view import cameras_html, step_words, who_flew
+from app.render.jobs_panels import compare_html
+
+
+def _record(tmp_path, start: str, failures_of: str, env_ids=(70, 71), trained=(70, 71)):
+    """An evaluation of `failures_of`, a run from `start` on its failures, and that run's rerun."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    db = Database(tmp_path / "gsmn.sqlite")
+    source = db.add_evaluation(system="gsmn", checkpoint=failures_of, env_ids=list(env_ids), label="source",
+                               status="finished")
+    for k, e in enumerate(env_ids):
+        db.add_episode(episode(source, k, e))
+    rid = db.add_run(settings={}, env_ids=list(trained), init_checkpoint=start, folder=str(tmp_path / "run"),
+                     source_evaluation_id=source, status="finished")
+    db.update_run(rid, checkpoint=str(tmp_path / "run" / "checkpoint"))
+    return db, db.evaluation(source), db.run(rid)
+
+
+def test_before_is_the_checkpoint_the_run_started_from(tmp_path):
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    db, source, run = _record(tmp_path, start=b, failures_of=a)
+    assert not same_checkpoint(a, b) and same_checkpoint(a, str(tmp_path / "a" / ".." / "a"))
+    assert before_for_run(db, run, source) is None, "another checkpoint's evaluation is no 'before'"
+    mirrored = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[71, 70], label="b, mirrored",
+                                 status="finished", mirror_ensemble=True)
+    running = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[70, 71], label="b, running", status="running")
+    assert before_for_run(db, run, source) is None, (mirrored, running)
+    fair = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[71, 70], label="b", status="finished")
+    assert before_for_run(db, run, source).id == fair
+    db2, source2, run2 = _record(tmp_path / "x", start=a, failures_of=a)
+    assert before_for_run(db2, run2, source2).id == source2.id
+
+
+def test_before_after_names_both_checkpoints_and_warns_when_they_are_not_start_and_fine_tune(tmp_path):
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    db, source, run = _record(tmp_path, start=b, failures_of=a)
+    after = db.add_evaluation(system="gsmn", checkpoint=run.checkpoint, env_ids=[70, 71], label="after",
+                              baseline_id=source.id, run_id=run.id, status="finished")
+    for k, e in enumerate((70, 71)):
+        db.add_episode(episode(after, k, e, success=True, stage=None, attribution=None))
+    page = compare_html(compare(db, source, db.evaluation(after)), db.evaluation(after), run)
+    assert "<b>Before</b>: evaluation" in page and f"run-{run.id}, fine-tuned from" in page
+    assert "gsmn-unfair" in page and "mixes the change of checkpoint with the fine-tune" in page
+    fair = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[70, 71], label="b", status="finished")
+    for k, e in enumerate((70, 71)):
+        db.add_episode(episode(fair, k, e))
+    page = compare_html(compare(db, db.evaluation(fair), db.evaluation(after)), db.evaluation(after), run)
+    assert "gsmn-unfair" not in page
+
+
+def test_before_after_warns_when_the_run_trained_on_test_environments(tmp_path):
+    a = str(tmp_path / "a")
+    db, source, run = _record(tmp_path, start=a, failures_of=a, env_ids=(70, 71, 5), trained=(70, 71, 5))
+    after = db.add_evaluation(system="gsmn", checkpoint=run.checkpoint, env_ids=[70, 71, 5], label="after",
+                              baseline_id=source.id, run_id=run.id, status="finished")
+    for k, e in enumerate((70, 71, 5)):
+        db.add_episode(episode(after, k, e))
+    page = compare_html(compare(db, source, db.evaluation(after)), db.evaluation(after), run)
+    assert "gsmn-test-trained" in page and "trained on 2 test environments" in page
+    assert "no longer held out" in page
+    db2, source2, run2 = _record(tmp_path / "t", start=a, failures_of=a, env_ids=(5, 6), trained=(5, 6))
+    assert "gsmn-test-trained" not in compare_html(compare(db2, source2, source2), source2, run2)
+
+
+class _Episode:
+    def __init__(self, policy, checkpoint):
+        self.policy, self.checkpoint = policy, checkpoint
+
+
+class _Model:
+    name = "table2/no-ground"
+
+
+def test_a_comparison_says_who_flew_each_side_and_at_which_step():
+    models = {"/ck/no-ground": _Model()}
+    assert who_flew(_Episode("expert", None), models) == "expert"
+    assert who_flew(_Episode("model", "/ck/no-ground"), models) == "model table2/no-ground"
+    assert who_flew(_Episode("mirror", "/ck/no-ground"), models) == "model table2/no-ground, mirror ensemble"
+    assert who_flew(_Episode("model", "/elsewhere/gsmn"), models) == "model gsmn"
+    assert step_words(12, 12) == "step 12"
+    assert step_words(40, 31) == "step 31, its last (it ended before step 40)"
+    page = cameras_html(b"\xff\xd8", b"\xff\xd8", 3, 3, "blue: episode 1, model gsmn, step 3",
+                        "magenta: episode 2, expert, step 3")
+    assert "gsmn-camera-a-caption" in page and "magenta: episode 2, expert, step 3" in page
+
+
+def test_the_failure_card_never_says_right_and_wrong_of_one_thing():
+    """The attribution reads the named landmark ("read as street lamp"); the truth figures read whole maps. A card
+    with both says which is which, and a success's card lists no stage as gone wrong."""
+    from app.render.jobs_panels import episode_html
+    from app.render.truth import went_wrong_text
+    from gsmn.attribution import Attribution
+
+    a = Attribution(stage="perception", reason="The named landmark was seen but read as a street lamp.",
+                    landmark_row=3, landmark_col=4, observed=True, perceived=False, top_class="street lamp",
+                    p_landmark_class=0.1, landmark_class_rank=4, grounded=None, p_named=0.1, p_named_other=None,
+                    other_landmark=None, goal_right=False, goal_peak_x=1.0, goal_peak_y=2.0, goal_peak_p=0.4,
+                    goal_peak_error=9.0, stopped=True, final_to_peak=0.5,
+                    failed_from={"perception": None, "grounding": None, "goal": None})
+    card = episode_html(episode(1, 0, 70, stage="perception", attribution=a.to_dict()), "")
+    assert "named landmark perceived" in card and "read as street lamp" in card
+    assert "whole maps vs truth" in card and "every figure above chance to the end" in card
+    for contradiction in ("perceived: right", "went wrong", "right at the end"):
+        assert contradiction not in card
+    assert went_wrong_text({"perception": None, "goal": 12}) == \
+        "landmarks read: above chance to the end · goal mass: at chance from step **12**"
