@@ -8,6 +8,7 @@ what a person's clicks and typing do. Callbacks only post runner commands and pu
 from __future__ import annotations
 
 import html
+import threading
 import time
 from concurrent.futures import Future
 
@@ -59,9 +60,17 @@ SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 step
           "slow (2 steps/s)": 2.0}
 FOLLOW_LABEL = "Follow the live step"
 WATCH_LABEL = "Show episodes started elsewhere"
+ENV_TYPED_WAIT = 0.6  # s without a keystroke before a typed environment id shows its world
 SHARED_NOTE = ("<small>This tab has its own timeline, episode, counterfactual and layers. **Shared by every tab:** "
                "the one simulator (one episode flies at a time: Run, Pause, Step, Stop and Speed act on it for "
                "everyone) and the jobs.</small>")
+
+
+def parse_env_id_or_none(text: str) -> int | None:
+    try:
+        return parse_env_id(text)
+    except ValueError:
+        return None
 
 
 def speed_choice(steps_per_second: float | None) -> str:
@@ -270,6 +279,28 @@ class ViewerControls:
         if self.split.value != split_of(env_id):  # the split always names the id's own
             self.split.value = split_of(env_id)
         self.instruction_note.content = self._instruction_feedback(self.instruction.value)
+        self._show_typed_world(env_id)
+
+    def _show_typed_world(self, env_id: int) -> None:
+        """Show the world of an id typed, once the typing has paused (ENV_TYPED_WAIT), so that the 3D view, the
+        instruction and the chips all speak of the world whose id the box holds."""
+        shown = self.world_shown.world.env_id if self.world_shown is not None else None
+        timer = getattr(self, "_env_timer", None)
+        if timer is not None:
+            timer.cancel()
+        if env_id == shown:
+            return
+        typed = time.perf_counter()
+
+        def show() -> None:  # not once Run was pressed since, nor when the box holds another id by then
+            if self._closing or getattr(self, "_last_run", 0.0) > typed:
+                return
+            if parse_env_id_or_none(self.env_number.value) == env_id:
+                self._post(ShowEnv(env_id), ShowAnswered)
+
+        self._env_timer = threading.Timer(ENV_TYPED_WAIT, show)
+        self._env_timer.daemon = True
+        self._env_timer.start()
 
     def _fill_instruction(self, side: str | None = None, name: str | None = None) -> None:
         """A chip or a landmark clicked in the scene: put that side or landmark into the instruction template."""
@@ -289,7 +320,7 @@ class ViewerControls:
         self.checkpoint_note.content = self._checkpoint_text()
 
     def _run(self, paused: bool) -> None:
-        self._clicked_at = time.perf_counter()
+        self._clicked_at = self._last_run = time.perf_counter()
         policy, checkpoint = self._policy_of_choice()
         text = self.instruction.value.strip() or None
         env_id = self._env_id()
