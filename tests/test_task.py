@@ -17,7 +17,6 @@ from gsmn.task.instructions import (
     acceptable,
     instruction_for_env,
     make_instruction,
-    parse_instruction,
     sample_instruction,
     tokenize,
 )
@@ -33,8 +32,11 @@ from gsmn.task.metrics import (
     success,
     summarize,
 )
+from gsmn.task.understand import parse_instruction
 from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.spec import LandmarkSpec, WorldSpec, start_pose, world_for_env
+
+pytestmark = pytest.mark.unit
 
 _BY_NAME = {m.name: (i, m) for i, m in enumerate(CATALOGUE)}
 

@@ -4,12 +4,15 @@ environments; a comparison names who flew each side and at which step each view 
 
 from __future__ import annotations
 
+import pytest
 from test_jobs_units import episode
 
 from app.jobs.db import Database
 from app.jobs.results import before_for_run, compare, same_checkpoint
 from app.page.compare_view import cameras_html, step_words, who_flew
 from app.render.jobs_panels import compare_html
+
+pytestmark = pytest.mark.unit
 
 
 def _record(tmp_path, start: str, failures_of: str, env_ids=(70, 71), trained=(70, 71)):
