@@ -48,7 +48,9 @@ def who_flew(e: Episode, models: dict) -> str:
     if e.policy == "expert":
         return "expert"
     m = models.get(e.checkpoint) if e.checkpoint else None
-    name = m.name if m is not None else (Path(e.checkpoint).name if e.checkpoint else "?")
+    name = m.name if m is not None else (e.checkpoint or "?")
+    if Path(name).is_absolute():  # a folder outside checkpoints/: its last part
+        name = Path(name).name
     return f"model {name}" + (", mirror ensemble" if e.policy == "mirror" else "")
 
 
@@ -206,6 +208,8 @@ class CompareView:
             self.partner_drawn = False
             self.summary.content = "No comparison shown: run two policies side by side, or fork an episode."
             self.partner_camera.content = self.partner_maps.content = ""
+        if self.note.content.startswith("Showing"):  # "Showing fork 14 of episode 7": a pair no longer shown
+            self.note.content = ""
 
     def render(self, episode: Episode, t: int) -> None:
         partner = self.partner_of(episode)

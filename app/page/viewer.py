@@ -335,7 +335,9 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         try:
             result = future.result()
         except RunnerError as e:  # said once, in the status line; the result below is labelled with its episode
-            self.status.content = error_html(f"**Not started:** {html.escape(str(e))}")
+            shown = self.view.episode
+            still = f" Still shown: episode {shown.id} and its result." if shown is not None and started else ""
+            self.status.content = error_html(f"**Not started:** {html.escape(str(e))}{still}")
             if started:
                 self.instruction_note.content = ""
             return False

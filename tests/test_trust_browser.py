@@ -1,0 +1,88 @@
+"""In headless Chromium, what the page says is about what it shows (the page's trust defects, as a new user met
+them): a comparison names who flew each side under both cameras and over the second set of maps, with its step;
+an environment id typed shows that world, its instruction and its landmarks; a refused Run says which episode is
+still shown; the fork note goes with the fork.
+
+Worlds here are ones no other browser test uses (174, 181, 192)."""
+
+from __future__ import annotations
+
+import browser_support
+import pytest
+
+from app.browser import field
+from app.live.fixtures import make_untrained_checkpoint
+from gsmn.task.rollout import task_for_env
+
+pytestmark = pytest.mark.browser
+HORIZON = 24
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory, untrained_checkpoint):
+    root = tmp_path_factory.mktemp("offered")
+    make_untrained_checkpoint(root / "other", seed=3)  # a second checkpoint to compare with, offered by name
+    with browser_support.dashboard(tmp_path_factory, HORIZON, checkpoint=untrained_checkpoint,
+                                   checkpoints_root=root, env_id=174) as d:
+        yield d
+
+
+@pytest.fixture(scope="module")
+def page(dashboard):
+    with browser_support.page_on(dashboard, 1500, 1000) as page:
+        yield page
+
+
+def text_of(page, selector: str) -> str:
+    return page.evaluate(f"() => document.querySelector('{selector}')?.innerText ?? ''")
+
+
+def test_an_environment_id_typed_shows_its_world_and_instruction(dashboard, page):
+    viewer = dashboard.viewer
+    field(page, "Environment id").fill("181")
+    browser_support.until(lambda: viewer.world_shown is not None and viewer.world_shown.world.env_id == 181, 60,
+                          "world 181 shown after typing its id")
+    own = task_for_env(181, dashboard.runner.config).instruction.text
+    browser_support.until(lambda: field(page, "Instruction").input_value() == own, 30, "its instruction")
+    assert viewer.scene.world.env_id == 181, "the 3D view draws the world the box names"
+
+
+def test_a_comparison_names_who_flew_each_side_and_the_step_of_each_view(dashboard, page):
+    viewer = dashboard.viewer
+    field(page, "Environment id").fill("192")
+    browser_support.until(lambda: viewer.world_shown is not None and viewer.world_shown.world.env_id == 192, 60,
+                          "world 192")
+    page.get_by_text("Compare and fork").first.click()
+    other = next(o for o in viewer.compare.other.options if o.startswith("Model: other"))
+    field(page, "Compare with").click()
+    page.get_by_role("option", name=other, exact=True).click()
+    before = set(dashboard.runner.pairs.store)
+    page.get_by_role("button", name="Run both", exact=True).click()
+    browser_support.until(lambda: set(dashboard.runner.pairs.store) - before, 240, "the comparison")
+    comparison = dashboard.runner.comparison(max(set(dashboard.runner.pairs.store) - before))
+    a, b = comparison.episodes
+    browser_support.until(lambda: not a.live and not b.live, 240, "both episodes ended")
+    page.get_by_role("tab", name="Comparison").click()
+    page.get_by_text("Side by side").first.wait_for()
+    caption_a = browser_support.poll(lambda: text_of(page, ".gsmn-camera-a-caption"), lambda t: "episode" in t,
+                                     "the blue camera's caption")
+    caption_b = text_of(page, ".gsmn-camera-b-caption")
+    assert f"episode {a.id}" in caption_a and "model gsmn" in caption_a
+    assert f"episode {b.id}" in caption_b and "model other" in caption_b
+    title = text_of(page, ".gsmn-partner-title")
+    assert title.startswith("Magenta's maps") and f"episode {b.id}" in title and "model other" in title
+    assert "step" in title
+    summary = page.get_by_text("model other").count()
+    assert summary >= 2, "the table and the captions name the second checkpoint"
+
+
+def test_a_refused_run_says_which_episode_is_still_shown(dashboard, page):
+    viewer = dashboard.viewer
+    page.get_by_role("tab", name="Camera and maps").click()
+    shown = viewer.view.episode
+    assert shown is not None
+    field(page, "Instruction").fill("go to the left side of the unicorn")
+    page.get_by_role("button", name="Run", exact=True).click()
+    status = browser_support.poll(lambda: viewer.status.content, lambda s: "Not started" in s, "the refusal")
+    assert f"Still shown: episode {shown.id}" in status
+    assert not viewer.compare.note.content.startswith("Showing") or viewer.compare.partner_of(shown) is not None
