@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,7 @@ from gsmn.config import RunConfig
 from gsmn.executor import Executor, ExecutorOptions, make_executor, open_shared, shared_key
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
+from gsmn.model.vocabulary import Vocabulary
 from gsmn.task.rollout import task_for_env
 from gsmn.training import distributed
 from gsmn.training.collect import MixturePolicy, fly_and_record
@@ -98,6 +100,45 @@ def _rollout_one(job: tuple[str, int, int, float, int], policy=None) -> tuple[st
 
 
 # -- the algorithm ----------------------------------------------------------------------------------
+@dataclass
+class _Run:
+    """What the phases of one DAggerFM run share. `state.extra["phase"]` names the phase to do next (start,
+    refill, discard, collect, train) and what it will do, saved before it is done."""
+
+    run: RunFolder
+    config: RunConfig  # this rank's (`on_rank_device`)
+    world: distributed.World
+    model: torch.nn.Module
+    vocabulary: Vocabulary
+    optimizer: torch.optim.Optimizer
+    state: TrainState | None  # None on the other ranks until they follow rank 0's saved state
+    dataset: EpisodeStore  # D
+    log: Logger
+    on_progress: Progress | None
+    executor_options: ExecutorOptions | None
+    env_ids: list[int] = field(default_factory=list)  # where rollouts are drawn
+    expected: int = 0  # the episodes D holds from the start on (M, or all the expert episodes where fewer)
+    pool: Executor | None = None  # the rollout workers, started at the first rollouts
+
+    def save(self, extra: dict) -> None:
+        """Write down the next phase, and what it will do, in the saved state (before doing it)."""
+        self.state.extra = extra
+        self.run.save_state(self.model, self.optimizer, self.state)
+
+    def report(self, progress: dict, force: bool = False) -> None:
+        self.run.write_progress(progress, force=force)
+        if self.on_progress:
+            self.on_progress(progress)
+
+    def fly(self, jobs: list) -> Iterator[int]:
+        """Fly mixture rollouts (`_rollout_one`) on the workers, counting them as they land."""
+        self.pool = self.pool or _make_pool(self.config, self.dataset, self.run.root / "policy",
+                                            self.executor_options)
+        shared = self.pool.share(self.run.root / "policy")  # the weights once per phase, not with each rollout
+        for k, _ in enumerate(self.pool.map(_rollout_one, jobs, shared), start=1):
+            yield k
+
+
 def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_store: EpisodeStore,
                  dev_store: EpisodeStore | None = None, env_ids: list[int] | None = None, log: Logger = print,
                  stop_after: Callable[[TrainState], bool] | None = None, on_progress: Progress | None = None,
@@ -110,10 +151,36 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     its optimizer, as Algorithm 1's iterations do), else fresh. `on_iteration(state)` is called after each finished
     iteration, once its checkpoint and state are saved (e.g. to keep a copy of that stage elsewhere).
     `executor_options`: where the rollouts fly (default: `dagger.workers` processes on this host; `gsmn.executor`)."""
+    d = _resume(run_dir, init, config, log, on_progress, init_optimizer, executor_options)
+    expert_keys = expert_store.keys()
+    _choose_environments(d, expert_store, expert_keys, env_ids)
+    if d.world.main and d.state.extra["phase"] == "start":
+        _seed_dataset(d, expert_store, expert_keys)
+    if d.world.size > 1:
+        d.state = _follow(d.run, d.model, d.optimizer, d.world, d.state if d.world.main else None)
+    iterations = d.config.dagger.iterations
+    try:
+        while d.state.epoch < iterations:
+            i = d.state.epoch + 1  # iteration index, from 1
+            beta = beta_schedule(d.config.dagger.beta0, i)
+            _collect_with_current_policy(d, i, beta)
+            if not _train_iteration(d, i, beta, dev_store, stop_after, on_iteration):
+                break  # stopped mid-epoch (its state saved) or at an iteration's end
+    finally:
+        if d.pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
+            d.pool.close()
+    if d.state.epoch >= iterations and d.world.main:
+        d.report({"phase": "done", "iteration": d.state.epoch, "iterations": iterations}, force=True)
+    return d.run.checkpoint_dir
+
+
+def _resume(run_dir: Path | str, init: Path, config: RunConfig, log: Logger,
+            on_progress: Progress | None, init_optimizer: bool, executor_options: ExecutorOptions | None) -> _Run:
+    """The run folder started (or found), and the model, vocabulary and Adam of `init` or of the run's saved state:
+    rank 0 reads that state (a new run starts at phase "start"); the other ranks follow it later (`_follow`)."""
     torch.set_num_threads(config.train.threads)
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
-    dc, seed = config.dagger, config.train.seed
     world = distributed.init(config.train.device)
     run = RunFolder(run_dir)
     if world.main:
@@ -122,114 +189,141 @@ def train_dagger(run_dir: Path | str, init: Path, config: RunConfig, expert_stor
     config = on_rank_device(config, world)
     check_batch_size(config, world)
     dataset = EpisodeStore(run.root / "dataset")
+    state = None
     if world.main:
         model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
         state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
         run.trim_log(state.epoch)
     else:  # the weights, Adam and counters come from rank 0's saved state (`_follow`)
         model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
-    expert_keys = expert_store.keys()
+    return _Run(run, config, world, model, vocabulary, optimizer, state, dataset, log, on_progress,
+                executor_options)
+
+
+def _choose_environments(d: _Run, expert_store: EpisodeStore, expert_keys: list[str],
+                         env_ids: list[int] | None) -> None:
+    """Where the rollouts fly (`env_ids`, else the expert store's environments), and how many episodes D holds."""
     if env_ids is None:
         env_ids = sorted({expert_store.read_meta(k).get("env_id", -1) for k in expert_keys} - {-1})
     if not env_ids:
         raise ValueError("no environments to roll out in: give env_ids or an expert store with env ids")
+    d.env_ids = env_ids
     # D holds M episodes from the start on (each iteration drops N_D and adds N_D); a run resumed without its
     # dataset (a new machine: the run's state restored, its episodes gone) refills it before the next iteration
-    expected = min(dc.dataset_size, len(expert_keys)) if expert_keys else dc.dataset_size
+    dataset_size = d.config.dagger.dataset_size
+    d.expected = min(dataset_size, len(expert_keys)) if expert_keys else dataset_size
 
-    if world.main and state.extra["phase"] == "start":  # D ~ D*, M episodes (hard links: no copy of the data)
-        chosen = _rng(seed, 0).choice(len(expert_keys), size=min(dc.dataset_size, len(expert_keys)), replace=False)
-        for i in sorted(chosen):
-            _link(expert_store.path(expert_keys[i]), dataset.path(expert_keys[i]))
-        state.extra = {"phase": "discard"}
-        run.save_state(model, optimizer, state)
-    if world.size > 1:
-        state = _follow(run, model, optimizer, world, state if world.main else None)
 
-    pool = None
-    try:
-        while state.epoch < dc.iterations:
-            i = state.epoch + 1  # iteration index, from 1
-            beta = beta_schedule(dc.beta0, i)
-            if world.main and state.extra["phase"] == "discard" and len(dataset) < expected:  # lost (a new machine)
-                missing = expected - len(dataset)
-                rng = _rng(seed, i, 1)
-                jobs = [(f"refill_{i:04d}_{k:03d}_env_{e:06d}", int(e), i, beta, int(rng.integers(2**31)))
-                        for k, e in enumerate(rng.choice(env_ids, size=missing, replace=True))]
-                log(f"iteration {i}: the dataset holds {len(dataset)} of its {expected} episodes; refilling it with "
-                    f"{missing} rollouts of the current mixture policy (beta {beta:.4g}), labelled by the expert")
-                state.extra = {"phase": "refill", "jobs": jobs}
-                run.save_state(model, optimizer, state)
-            if world.main and state.extra["phase"] == "refill":
-                save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
-                todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
-                if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
-                    shared = pool.share(run.root / "policy")  # the weights once per phase, not with each rollout
-                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
-                        _report(run, on_progress, {"phase": "collect", "iteration": i, "iterations": dc.iterations,
-                                                   "beta": round(beta, 4), "rollouts": len(todo), "done": k})
-                state.extra = {"phase": "discard", "refilled": len(state.extra["jobs"])}
-                run.save_state(model, optimizer, state)
-            if world.main and state.extra["phase"] == "discard":
-                refilled = state.extra.get("refilled", 0)
-                keys = dataset.keys()
-                rng = _rng(seed, i)
-                drop = [keys[j] for j in rng.choice(len(keys), size=min(dc.rollouts_per_iteration, len(keys)),
-                                                     replace=False)]
-                new_envs = [int(e) for e in rng.choice(env_ids, size=dc.rollouts_per_iteration, replace=True)]
-                jobs = [(f"dagger_{i:04d}_{k:03d}_env_{e:06d}", e, i, beta, int(rng.integers(2**31)))
-                        for k, e in enumerate(new_envs)]
-                state.extra = {"phase": "collect", "drop": drop, "jobs": jobs, "refilled": refilled}
-                run.save_state(model, optimizer, state)
-            if world.main and state.extra["phase"] == "collect":
-                for key in state.extra["drop"]:
-                    dataset.delete(key)
-                save_checkpoint(run.root / "policy", model, config, vocabulary, meta={"iteration": i})
-                todo = [tuple(j) for j in state.extra["jobs"] if j[0] not in dataset]
-                n_jobs = len(state.extra["jobs"])
-                collect = {"phase": "collect", "iteration": i, "iterations": dc.iterations, "beta": round(beta, 4),
-                           "rollouts": n_jobs}
-                _report(run, on_progress, {**collect, "done": n_jobs - len(todo)}, force=True)
-                if todo:
-                    pool = pool or _make_pool(config, dataset, run.root / "policy", executor_options)
-                    shared = pool.share(run.root / "policy")
-                    for k, _ in enumerate(pool.map(_rollout_one, todo, shared), start=1):
-                        _report(run, on_progress, {**collect, "done": n_jobs - len(todo) + k})
-                state.extra = {"phase": "train", "mix": _mixture_counts(dataset, state.extra["jobs"]),
-                               "refilled": state.extra.get("refilled", 0)}
-                run.save_state(model, optimizer, state)
-            if world.size > 1:  # the other ranks wait while rank 0 collects, then train from its saved state
-                state = _follow(run, model, optimizer, world, state if world.main else None)
-            if state.extra["phase"] == "train":
-                if not run_epoch(run, model, optimizer, vocabulary, config, dataset, dataset.keys(), state, i,
-                                 stop_after, on_progress, {"iteration": i, "iterations": dc.iterations}, world):
-                    return run.checkpoint_dir
-                if world.main:
-                    _report(run, on_progress, {"phase": "validate", "iteration": i, "iterations": dc.iterations},
-                            force=True)
-                mix = state.extra["mix"]
-                record = {"iteration": i, "beta": round(beta, 4), "dataset": len(dataset),
-                          "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
-                if mix.get("scored") and mix["scored"] == mix["rollouts"]:  # rollouts before 2026-11-29 kept none
-                    record.update(rollout_success=mix["success"] / mix["scored"],
-                                  rollout_cut=mix["cut"] / mix["scored"])
-                if state.extra.get("refilled"):
-                    record["refilled"] = state.extra["refilled"]  # rollouts flown to refill a lost dataset
-                state.extra = {"phase": "discard"}
-                finish_epoch(run, model, optimizer, vocabulary, config, state, record, dev_store, log, world)
-                if on_iteration and world.main:
-                    on_iteration(state)
-                if distributed.agree(bool(world.main and stop_after and stop_after(state)), world,
-                                     model_device(model)):
-                    break
-    finally:
-        if pool is not None:  # stopped early: finish the rollouts in flight (written atomically), start no more
-            pool.close()
-    if state.epoch >= dc.iterations and world.main:
-        _report(run, on_progress, {"phase": "done", "iteration": state.epoch, "iterations": dc.iterations},
-                force=True)
-    return run.checkpoint_dir
+def _seed_dataset(d: _Run, expert_store: EpisodeStore, expert_keys: list[str]) -> None:
+    """D ~ D*: M episodes of the expert data (hard links: no copy of the data)."""
+    size = min(d.config.dagger.dataset_size, len(expert_keys))
+    chosen = _rng(d.config.train.seed, 0).choice(len(expert_keys), size=size, replace=False)
+    for i in sorted(chosen):
+        _link(expert_store.path(expert_keys[i]), d.dataset.path(expert_keys[i]))
+    d.save({"phase": "discard"})
+
+
+def _collect_with_current_policy(d: _Run, i: int, beta: float) -> None:
+    """Rank 0's phases before iteration `i`'s epoch, each taken up where a stopped run left it: refill a lost D,
+    choose what to discard and where to fly, then discard and fly; the other ranks wait and follow its state."""
+    if d.world.main and d.state.extra["phase"] == "discard" and len(d.dataset) < d.expected:  # lost (a new machine)
+        _plan_refill(d, i, beta)
+    if d.world.main and d.state.extra["phase"] == "refill":
+        _refill(d, i, beta)
+    if d.world.main and d.state.extra["phase"] == "discard":
+        _plan_iteration(d, i, beta)
+    if d.world.main and d.state.extra["phase"] == "collect":
+        _discard_and_collect(d, i, beta)
+    if d.world.size > 1:  # the other ranks wait while rank 0 collects, then train from its saved state
+        d.state = _follow(d.run, d.model, d.optimizer, d.world, d.state if d.world.main else None)
+
+
+def _plan_refill(d: _Run, i: int, beta: float) -> None:
+    """The rollouts of the current mixture policy, labelled by the expert, that refill D to its M episodes."""
+    missing = d.expected - len(d.dataset)
+    rng = _rng(d.config.train.seed, i, 1)
+    jobs = [(f"refill_{i:04d}_{k:03d}_env_{e:06d}", int(e), i, beta, int(rng.integers(2**31)))
+            for k, e in enumerate(rng.choice(d.env_ids, size=missing, replace=True))]
+    d.log(f"iteration {i}: the dataset holds {len(d.dataset)} of its {d.expected} episodes; refilling it with "
+          f"{missing} rollouts of the current mixture policy (beta {beta:.4g}), labelled by the expert")
+    d.save({"phase": "refill", "jobs": jobs})
+
+
+def _refill(d: _Run, i: int, beta: float) -> None:
+    """Fly the refill's rollouts not yet in D."""
+    save_checkpoint(d.run.root / "policy", d.model, d.config, d.vocabulary, meta={"iteration": i})
+    todo = [tuple(j) for j in d.state.extra["jobs"] if j[0] not in d.dataset]
+    if todo:
+        for k in d.fly(todo):
+            d.report({"phase": "collect", "iteration": i, "iterations": d.config.dagger.iterations,
+                      "beta": round(beta, 4), "rollouts": len(todo), "done": k})
+    d.save({"phase": "discard", "refilled": len(d.state.extra["jobs"])})
+
+
+def _plan_iteration(d: _Run, i: int, beta: float) -> None:
+    """The N_D episodes of D to discard, uniformly at random, and the N_D rollouts to fly (environment, seed)."""
+    n = d.config.dagger.rollouts_per_iteration
+    refilled = d.state.extra.get("refilled", 0)
+    keys = d.dataset.keys()
+    rng = _rng(d.config.train.seed, i)
+    drop = [keys[j] for j in rng.choice(len(keys), size=min(n, len(keys)), replace=False)]
+    new_envs = [int(e) for e in rng.choice(d.env_ids, size=n, replace=True)]
+    jobs = [(f"dagger_{i:04d}_{k:03d}_env_{e:06d}", e, i, beta, int(rng.integers(2**31)))
+            for k, e in enumerate(new_envs)]
+    d.save({"phase": "collect", "drop": drop, "jobs": jobs, "refilled": refilled})
+
+
+def _discard_and_collect(d: _Run, i: int, beta: float) -> None:
+    """Discard the chosen episodes and add the rollouts of pi_hat_i (D <- D u D_i), those not flown yet."""
+    extra = d.state.extra
+    for key in extra["drop"]:
+        d.dataset.delete(key)
+    save_checkpoint(d.run.root / "policy", d.model, d.config, d.vocabulary, meta={"iteration": i})
+    todo = [tuple(j) for j in extra["jobs"] if j[0] not in d.dataset]
+    n_jobs = len(extra["jobs"])
+    collect = {"phase": "collect", "iteration": i, "iterations": d.config.dagger.iterations, "beta": round(beta, 4),
+               "rollouts": n_jobs}
+    d.report({**collect, "done": n_jobs - len(todo)}, force=True)
+    if todo:
+        for k in d.fly(todo):
+            d.report({**collect, "done": n_jobs - len(todo) + k})
+    d.save({"phase": "train", "mix": _mixture_counts(d.dataset, extra["jobs"]),
+            "refilled": extra.get("refilled", 0)})
+
+
+def _train_iteration(d: _Run, i: int, beta: float, dev_store: EpisodeStore | None,
+                     stop_after: Callable[[TrainState], bool] | None,
+                     on_iteration: Callable[[TrainState], None] | None) -> bool:
+    """One epoch on D (pi_{i+1}), then validation, the log record, the checkpoint and the next iteration's saved
+    state, and `on_iteration`. False where the run stops: mid-epoch, or at its end (`stop_after`)."""
+    if d.state.extra["phase"] != "train":
+        return True
+    iterations = d.config.dagger.iterations
+    if not run_epoch(d.run, d.model, d.optimizer, d.vocabulary, d.config, d.dataset, d.dataset.keys(), d.state, i,
+                     stop_after, d.on_progress, {"iteration": i, "iterations": iterations}, d.world):
+        return False
+    if d.world.main:
+        d.report({"phase": "validate", "iteration": i, "iterations": iterations}, force=True)
+    record = _iteration_record(d, i, beta)
+    d.state.extra = {"phase": "discard"}
+    finish_epoch(d.run, d.model, d.optimizer, d.vocabulary, d.config, d.state, record, dev_store, d.log, d.world)
+    if on_iteration and d.world.main:
+        on_iteration(d.state)
+    stop = bool(d.world.main and stop_after and stop_after(d.state))
+    return not distributed.agree(stop, d.world, model_device(d.model))
+
+
+def _iteration_record(d: _Run, i: int, beta: float) -> dict:
+    """The iteration's log record beside the dev figures: beta, D's size, the learner's share of the steps flown,
+    and the closed loop of its own rollouts (and how many refilled a lost D)."""
+    mix = d.state.extra["mix"]
+    record = {"iteration": i, "beta": round(beta, 4), "dataset": len(d.dataset),
+              "learner_step_fraction": mix["learner"] / max(1, mix["learner"] + mix["expert"])}
+    if mix.get("scored") and mix["scored"] == mix["rollouts"]:  # rollouts before 2026-11-29 kept none
+        record.update(rollout_success=mix["success"] / mix["scored"], rollout_cut=mix["cut"] / mix["scored"])
+    if d.state.extra.get("refilled"):
+        record["refilled"] = d.state.extra["refilled"]  # rollouts flown to refill a lost dataset
+    return record
 
 
 def _follow(run: RunFolder, model: torch.nn.Module, optimizer: torch.optim.Optimizer, world: distributed.World,
@@ -241,12 +335,6 @@ def _follow(run: RunFolder, model: torch.nn.Module, optimizer: torch.optim.Optim
         state = run.load_state(model, optimizer)
     distributed.barrier(world)
     return state
-
-
-def _report(run: RunFolder, on_progress: Progress | None, progress: dict, force: bool = False) -> None:
-    run.write_progress(progress, force=force)
-    if on_progress:
-        on_progress(progress)
 
 
 def _make_pool(config: RunConfig, dataset: EpisodeStore, policy_dir: Path,
