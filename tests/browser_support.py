@@ -1,4 +1,4 @@
-"""What the browser tests share: a dashboard on an untrained tiny checkpoint with folders of its own (never the
+"""What the browser tests share: a dashboard on the run's untrained tiny checkpoint with folders of its own (never the
 repository's `data/dashboard`), a headless Chromium, a page open on the dashboard, and waiting for a condition.
 
 Like the tests that use them these fail, not skip, without Playwright or a Chromium (./test.sh installs both).
@@ -11,10 +11,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import playwright.sync_api as playwright_api
-from support import poll, until  # noqa: F401 - the browser tests wait through this module
+from support import poll, until, untrained_checkpoint  # noqa: F401 - the browser tests wait through this module
 
 from app.browser import CHROMIUM, CHROMIUM_ARGS
-from app.live.fixtures import make_untrained_checkpoint
 
 NO_CHROMIUM = "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BROWSER=1 scripts/setup.sh)"
 
@@ -22,14 +21,15 @@ NO_CHROMIUM = "no Chromium found: ./test.sh installs Debian's chromium (GSMN_BRO
 @contextlib.contextmanager
 def dashboard(tmp_path_factory, horizon: int, **options) -> Iterator[Any]:
     """A Dashboard of the tiny preset flying `horizon` steps at most, on free ports, closed afterwards. By default
-    its checkpoint is an untrained GSMN, it offers no other, and it keeps its record in a folder of its own;
-    `options` go to Dashboard (another `checkpoint`, `checkpoints_root`, `env_id`, ...)."""
+    its checkpoint is the run's untrained GSMN (support.untrained_checkpoint, built once per run), it offers no
+    other, and it keeps its record in a folder of its own; `options` go to Dashboard (another `checkpoint`,
+    `checkpoints_root`, `env_id`, ...)."""
     from app.server import Dashboard
     from gsmn.config import preset, with_overrides
 
     root = tmp_path_factory.mktemp("dashboard")
     if "checkpoint" not in options:
-        options["checkpoint"] = make_untrained_checkpoint(root / "checkpoint" / "gsmn")
+        options["checkpoint"] = untrained_checkpoint(tmp_path_factory)
     if "checkpoints_root" not in options:
         (root / "offered").mkdir()
         options["checkpoints_root"] = root / "offered"

@@ -1,10 +1,70 @@
-"""Shared test set-up: headless rendering must be chosen before any test module imports mujoco."""
+"""Shared test set-up: headless rendering must be chosen before any test module imports mujoco; the tiers (which
+tests `pytest -m fast` runs); the fixtures many modules share: one untrained checkpoint per run, `gsmn serve`
+processes, and the training tests' expert stores."""
 
 import os
 
 import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+
+# The tiers (README.md, "Tests"). Every test module names its tier in a module-level `pytestmark`
+# (tests/test_structure.py checks it): `unit` for unit, contract and golden tests, or what makes it heavy.
+# A test of a `unit` module that is heavy carries that marker itself.
+HEAVY = ("server", "browser", "training", "cluster", "slow")  # registered in pyproject.toml
+# fixtures that start what a fast test may not: a `gsmn serve` process
+HEAVY_FIXTURES = {"gsmn_serve": "server"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` selects
+def pytest_collection_modifyitems(config, items):
+    """Mark `fast` every test that carries none of the heavy markers."""
+    for item in items:
+        if not any(item.get_closest_marker(name) for name in HEAVY):
+            item.add_marker(pytest.mark.fast)
+
+
+@pytest.hookimpl(tryfirst=True)  # before its fixtures are set up
+def pytest_runtest_setup(item):
+    """A fast test that would start a server through a fixture fails instead."""
+    if item.get_closest_marker("fast"):
+        needs = [f"{name} ({marker})" for name, marker in HEAVY_FIXTURES.items() if name in item.fixturenames]
+        if needs:
+            pytest.fail(f"a fast test may not use {', '.join(needs)}: mark it (or its module) with that marker",
+                        pytrace=False)
+
+
+@pytest.fixture(scope="session")
+def untrained_checkpoint(tmp_path_factory):
+    """The folder of an untrained tiny GSMN checkpoint (`make_untrained_checkpoint`'s defaults: seed 0, controller
+    biased to fly), built once per run for every xdist worker (support.untrained_checkpoint). Read-only: a test that
+    changes a checkpoint copies it first (`shutil.copytree(..., copy_function=shutil.copyfile)`); at the end of the
+    session it is checked unchanged."""
+    from support import tree_digest, untrained_checkpoint
+
+    folder = untrained_checkpoint(tmp_path_factory)
+    yield folder
+    assert tree_digest(folder) == (folder.parent / "built").read_text(), \
+        f"a test changed the shared untrained checkpoint {folder}: copy it instead"
+
+
+@pytest.fixture(scope="module")
+def gsmn_serve():
+    """Start a `gsmn serve` process: `gsmn_serve(data_dir, checkpoint, *options, horizon=..., ...)` takes
+    support.Serve's arguments and returns it started (`.client` on its API, `.page`, `.proc`, `.output()`,
+    `.stop()`, `.kill()`, `.start()` again). Each is stopped when the test stops it, or when the module ends."""
+    from support import Serve
+
+    started: list[Serve] = []
+
+    def start(*args, **kwargs) -> Serve:
+        serve = Serve(*args, **kwargs)
+        started.append(serve)
+        return serve.start()
+
+    yield start
+    for serve in reversed(started):
+        serve.stop()
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,8 @@ from websockets.sync.client import connect
 from app.server import Dashboard
 from gsmn.config import preset, with_overrides
 
+pytestmark = pytest.mark.unit
+
 PROTOCOL = [f"viser-v{viser.__version__}"]
 
 
@@ -120,6 +122,7 @@ def test_a_token_given_on_loopback_is_required_too(tmp_path):
         d.close()
 
 
+@pytest.mark.browser
 def test_the_page_carries_its_token_to_its_websocket_in_a_browser(tmp_path):
     """Headless Chromium: the printed URL (with ?token=) gives a working page, whose WebSocket carries the cookie
     that URL set; the bare URL gets the page's HTML but no connection, so no controls."""

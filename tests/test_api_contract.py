@@ -9,42 +9,26 @@ positive-data check also takes a 422.
 
 from __future__ import annotations
 
-import os
 import re
-import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from app.live.fixtures import make_untrained_checkpoint
-
 CONFIG = Path(__file__).with_name("schemathesis.toml")
+
+pytestmark = pytest.mark.server
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory):
-    root = tmp_path_factory.mktemp("contract")
-    folder = make_untrained_checkpoint(root / "gsmn")
-    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint",
-                             str(folder), "--port", "0", "--api-port", "0", "--task.horizon", "20", "--data-dir",
-                             str(root / "data")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    lines: list[str] = []
-    threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+def api(tmp_path_factory, untrained_checkpoint, gsmn_serve):
+    serve = gsmn_serve(tmp_path_factory.mktemp("contract") / "data", untrained_checkpoint, horizon=20)
+    url = serve.api
     try:
-        deadline = time.monotonic() + 180
-        url = None
-        while url is None and time.monotonic() < deadline and proc.poll() is None:
-            if m := re.search(r"API: (http://127\.0\.0\.1:\d+)/api", "".join(lines)):
-                url = m.group(1)
-            time.sleep(0.1)
-        assert url, "the server did not start:\n" + "".join(lines)
-        yield url, proc, lines
+        yield url, serve.proc, serve.lines
     finally:
         try:  # no job the generated requests started outlives the test
             for kind in ("runs", "evaluations"):
@@ -58,12 +42,7 @@ def api(tmp_path_factory):
                 time.sleep(0.5)
         except (httpx.HTTPError, ValueError, TypeError):
             pass
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        serve.stop(timeout=20)
 
 
 def test_the_api_keeps_to_its_openapi_schema(api, tmp_path):

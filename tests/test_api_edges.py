@@ -6,6 +6,7 @@ must be refused by name (empty, damaged, NaN weights)."""
 from __future__ import annotations
 
 import json
+import shutil
 import sqlite3
 import time
 
@@ -16,6 +17,8 @@ from app.api.schema import MAX_ID
 from app.live.commands import SetSpeed
 from app.server import Dashboard
 from gsmn.config import preset, with_overrides
+
+pytestmark = pytest.mark.unit
 
 BIG = MAX_ID + 1  # one past the largest id the schema admits (2**53 - 1: exact in every JSON reader)
 
@@ -182,13 +185,12 @@ def test_a_record_error_later_answers_503_naming_the_file(server, monkeypatch):
     healthy(d, client)
 
 
-def test_a_checkpoint_with_nan_weights_is_refused(tmp_path):
+def test_a_checkpoint_with_nan_weights_is_refused(tmp_path, untrained_checkpoint):
     from safetensors.torch import load_file, save_file
 
-    from app.live.fixtures import make_untrained_checkpoint
     from gsmn.model.checkpoint import CheckpointError, load_checkpoint
 
-    folder = make_untrained_checkpoint(tmp_path / "nan")
+    folder = shutil.copytree(untrained_checkpoint, tmp_path / "nan", copy_function=shutil.copyfile)  # writable
     weights = folder / "weights.safetensors"
     tensors = load_file(str(weights))
     name = sorted(k for k, t in tensors.items() if t.is_floating_point())[0]

@@ -4,53 +4,27 @@ that say what was wrong while the server keeps serving."""
 
 from __future__ import annotations
 
-import os
-import re
-import signal
 import subprocess
-import sys
-import threading
 import time
 
 import httpx
 import pytest
-
-from app.live.fixtures import make_untrained_checkpoint
+from support import serve_command
 
 HORIZON = 60
 
+pytestmark = pytest.mark.server
+
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-    proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint", str(folder),
-                             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON),
-                             "--data-dir", str(tmp_path_factory.mktemp("data"))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
-    reader.start()
+def server(tmp_path_factory, untrained_checkpoint, gsmn_serve):
+    serve = gsmn_serve(tmp_path_factory.mktemp("data"), untrained_checkpoint, horizon=HORIZON)
     try:
-        deadline = time.monotonic() + 180
-        urls: dict[str, str] = {}
-        while time.monotonic() < deadline and len(urls) < 2 and proc.poll() is None:
-            text = "".join(lines)
-            if m := re.search(r"gsmn dashboard: (http://127\.0\.0\.1:\d+)", text):
-                urls["page"] = m.group(1)
-            if m := re.search(r"API: (http://127\.0\.0\.1:\d+)/api", text):
-                urls["api"] = m.group(1)
-            time.sleep(0.1)
-        assert len(urls) == 2, "server did not print both URLs:\n" + "".join(lines)
-        with httpx.Client(base_url=urls["api"], timeout=60) as client:
-            yield {"client": client, "proc": proc, "lines": lines, "folder": str(folder), **urls}
+        assert serve.page, "server did not print both URLs:\n" + serve.output()
+        yield {"client": serve.client, "proc": serve.proc, "lines": serve.lines, "folder": str(untrained_checkpoint),
+               "page": serve.page, "api": serve.api}
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        serve.stop(timeout=20)
 
 
 def finished(client: httpx.Client, episode_id: int, timeout: float = 120.0) -> dict:
@@ -201,9 +175,7 @@ def test_without_a_model_the_api_says_so_and_the_expert_flies(tmp_path):
 
 
 def test_an_explicit_checkpoint_that_does_not_load_stops_serve(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint",
-                           str(tmp_path / "missing"), "--port", "0", "--api-port", "0", "--data-dir",
-                           str(tmp_path / "data")],
+    done = subprocess.run(serve_command(data_dir=tmp_path / "data", checkpoint=tmp_path / "missing"),
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert f"no checkpoint at {tmp_path / 'missing'}" in done.stderr

@@ -36,6 +36,8 @@ from gsmn.config import preset, with_overrides
 from gsmn.task.rollout import task_for_env
 from gsmn.world.landmarks import CATALOGUE
 
+pytestmark = pytest.mark.unit
+
 N = 32
 K = len(CATALOGUE)
 TASK = task_for_env(70, preset("tiny"))  # "go to the back side of the pumpkin", start (30, 0)
@@ -235,17 +237,17 @@ def test_a_success_has_no_stage_but_keeps_its_evidence_and_counts_add_up():
     assert type(ok).from_dict(json.loads(json.dumps(ok.to_dict()))) == ok
 
 
-def test_a_real_episode_trace_and_its_attribution(tmp_path):
+@pytest.mark.slow
+def test_a_real_episode_trace_and_its_attribution(tmp_path, untrained_checkpoint):
     """An untrained GSMN flies env 70 through evaluate(); its recorded trace is what the model held, and the
     attribution reads the maps as the dashboard's layers do."""
-    from app.live.fixtures import make_untrained_checkpoint
     from app.live.models import MapHeads
     from app.render.layers import inspect_cell
     from gsmn.evaluation import evaluate, results_dict
     from gsmn.model.checkpoint import load_checkpoint
 
     config = with_overrides(preset("tiny"), {"task.horizon": "25"})
-    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    folder = untrained_checkpoint
     [record] = evaluate("gsmn", [70], config, folder, record_dir=tmp_path / "rec")
     trace = load_trace(trace_path(tmp_path / "rec", 70))
     T = record.steps + 1  # observations, the last one included

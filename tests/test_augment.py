@@ -24,6 +24,8 @@ from gsmn.training.run import RunError, RunFolder
 from gsmn.world.env import Env
 from gsmn.world.spec import world_for_env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 
 
@@ -69,6 +71,7 @@ def test_mirrored_instruction_swaps_left_and_right_only():
         assert (instruction.goal_x, instruction.goal_y) == (20.0, 4.0)
 
 
+@pytest.mark.slow
 def test_mirrored_episode_is_what_the_mirrored_world_shows(flown):
     """At the start both flights are at mirrored poses: the real render of the mirrored world is the flipped image
     (up to the landmark meshes, which are rotated, not reflected), far closer than the unflipped one."""
@@ -89,6 +92,7 @@ def test_mirrored_episode_is_what_the_mirrored_world_shows(flown):
     assert np.allclose(mirrored.T_world_camera, in_mirror.T_world_camera, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_landmarks_project_to_the_flipped_pixels(flown):
     sample, _ = flown
     vocabulary = Vocabulary.default()
@@ -112,6 +116,7 @@ def test_mirroring_twice_gives_the_episode_back(flown):
     assert np.array_equal(back.actions, sample.actions)
 
 
+@pytest.mark.slow
 def test_maybe_mirror_is_seeded_and_follows_its_probability(flown):
     sample, _ = flown
     samples = [sample] * 40

@@ -13,6 +13,8 @@ import pytest
 
 from gsmn.cli import build_parser
 
+pytestmark = pytest.mark.unit
+
 COMMANDS = [["world"], ["eval"], ["fit-avg-forward"], ["collect"], ["train", "supervised"], ["train", "dagger"],
             ["average"], ["keep-iterations"], ["attribute"], ["analyze", "table1"], ["analyze", "regions"],
             ["analyze", "stop-threshold"], ["analyze", "compare"], ["analyze", "dagger"], ["serve"]]
@@ -33,6 +35,7 @@ def test_help_renders(command, capsys):
             assert flag in out
 
 
+@pytest.mark.slow
 def test_the_gsmn_script_lists_serve():
     """`gsmn serve` reaches the dashboard through the entry-point group, not through an import in gsmn/
     (tests/test_structure.py checks that importing gsmn.cli leaves the app out)."""
@@ -63,6 +66,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.slow
 def test_sigterm_stops_collect_and_its_workers(tmp_path):
     """SIGTERM to `gsmn collect` (2 workers, 40 episodes) after its first episode: it exits with 128 + 15 soon,
     without flying the rest, its worker processes are gone, and the episodes written are whole (they load)."""

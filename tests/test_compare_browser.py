@@ -13,6 +13,8 @@ import pytest
 from app.browser import field
 from app.live.fixtures import make_untrained_checkpoint
 
+pytestmark = pytest.mark.browser
+
 HORIZON = 40
 
 

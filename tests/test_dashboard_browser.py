@@ -14,6 +14,8 @@ import pytest
 
 from app.browser import field
 
+pytestmark = pytest.mark.browser
+
 HORIZON = 60
 
 

@@ -30,6 +30,8 @@ from app.live.runner import Runner
 from app.render.colors import decode_image
 from gsmn.config import preset
 
+pytestmark = pytest.mark.slow
+
 
 def wait_for(condition, timeout: float = 90.0, what: str = "condition") -> None:
     until(condition, timeout, what, every=0.02)
@@ -53,9 +55,9 @@ class Recorder(RunnerListener):
 
 
 @pytest.fixture(scope="module")
-def runner(tmp_path_factory):
+def runner(tmp_path_factory, untrained_checkpoint):
     torch.set_num_threads(1)
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+    folder = untrained_checkpoint
     r = Runner(preset("tiny"), checkpoint=str(folder), require_checkpoint=True,
                checkpoints_root=tmp_path_factory.mktemp("empty")).start()
     yield r

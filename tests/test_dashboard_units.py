@@ -48,6 +48,8 @@ from gsmn.task.rollout import Task
 from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.spec import split_env_ids, world_for_env
 
+pytestmark = pytest.mark.unit
+
 
 def test_colormap_spans_its_range_and_clips():
     values = np.array([[-1.0, 0.0, 0.5, 1.0, 2.0, np.nan]])

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 from safetensors.torch import load_file
 
@@ -22,6 +23,8 @@ from gsmn.training import distributed
 from gsmn.training.distributed import World
 from gsmn.training.store import EpisodeStore
 from gsmn.training.supervised import backward, batch_seed, epoch_batches, make_model_and_optimizer, read_batches
+
+pytestmark = pytest.mark.training
 
 FLAGS = {"task.horizon": "20", "train.batch_size": "2", "train.threads": "1"}
 TORCHRUN = Path(sys.executable).with_name("torchrun")

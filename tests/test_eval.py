@@ -24,6 +24,8 @@ from gsmn.task.metrics import summarize
 from gsmn.task.rollout import EpisodeRecord, rollout, task_for_env
 from gsmn.world.env import Env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 
 
@@ -59,6 +61,7 @@ def test_horizon_ends_an_episode_that_never_stops():
     assert not record.stopped and record.steps == 7 and len(record.trajectory) == 8
 
 
+@pytest.mark.slow
 def test_random_landmark_goes_to_the_instructed_side_of_some_landmark():
     finals = {}
     for env_id in (70, 73, 76):
@@ -89,6 +92,7 @@ def test_avg_forward_fits_saves_and_loads(tmp_path):
         make_policy("avg-forward", TINY, tmp_path / "missing.json")
 
 
+@pytest.mark.slow
 def test_parallel_workers_give_the_same_records_as_one_process():
     ids = [70, 71, 72, 73]
     one = evaluate("random-point", ids, TINY, workers=1)
@@ -107,6 +111,7 @@ def test_parse_env_ids_and_unknown_systems():
         make_policy("gsmn-nope", TINY)
 
 
+@pytest.mark.slow
 def test_an_evaluation_run_in_pieces_merges_into_the_whole(tmp_path):
     ids = [70, 71, 72, 73, 74]
     whole = results_dict("random-point", None, evaluate("random-point", ids, TINY), TINY, 1.0, 1)
@@ -138,6 +143,7 @@ def test_table_row_shows_pruned_figures_in_brackets():
     assert row.startswith("oracle") and row.count("(") == 4
 
 
+@pytest.mark.slow
 def test_cli_eval_writes_records_and_summary(tmp_path):
     out = tmp_path / "eval.json"
     run = subprocess.run([sys.executable, "-m", "gsmn.cli", "eval", "--system", "random-landmark", "--env-ids",
@@ -207,6 +213,7 @@ def test_cli_eval_writes_records_and_summary(tmp_path):
     assert mixed.returncode == 2 and "different environments" in mixed.stderr
 
 
+@pytest.mark.slow
 def test_cli_eval_stopped_by_sigterm_resumes_where_it_stopped(tmp_path):
     """`gsmn eval --json F` keeps each finished episode in F.partial.jsonl; after SIGTERM mid-run, a second run
     refuses to overwrite it, `--resume` flies only the rest and writes the same F as an uninterrupted run, and other
@@ -290,16 +297,16 @@ def test_each_shipped_checkpoint_flies_as_its_own_system(system):
     assert all(math.isfinite(v) for action in record.actions for v in action[:2])
 
 
-def test_stop_threshold_analysis_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path):
+@pytest.mark.slow
+def test_stop_threshold_analysis_replays_a_recorded_evaluation_at_lower_thresholds(tmp_path, untrained_checkpoint):
     """`gsmn analyze stop-threshold`: at 0.5 it reproduces the recorded outcomes; at a lower threshold each episode
     stops at the first step whose recorded P(stop) is above it, and is scored there; ensembles are refused."""
-    from app.live.fixtures import make_untrained_checkpoint
     from gsmn.attribution import load_trace, trace_path
     from gsmn.config import with_overrides
     from gsmn.task.metrics import success
 
     config = with_overrides(TINY, {"task.horizon": "20"})
-    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    folder = untrained_checkpoint
     records = evaluate("gsmn", [70, 71], config, folder, record_dir=tmp_path / "rec")
     results = tmp_path / "eval.json"
     results.write_text(json.dumps(results_dict("gsmn", str(folder), records, config, 1.0, 1)))

@@ -14,17 +14,17 @@ import httpx
 import pytest
 from PIL import Image
 
-from app.live.fixtures import make_untrained_checkpoint
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def flown(tmp_path_factory):
+def flown(tmp_path_factory, untrained_checkpoint):
     """A data folder holding one finished episode of the untrained model (tiny preset), and that episode as the API
     gave it while the server ran, with its exports from the API."""
     from app.server import Dashboard
     from gsmn.config import preset, with_overrides
 
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+    folder = untrained_checkpoint
     data = tmp_path_factory.mktemp("data")
     d = Dashboard(with_overrides(preset("tiny"), {"task.horizon": "25"}), checkpoint=folder, port=0, api_port=0,
                   checkpoints_root=tmp_path_factory.mktemp("empty"), data_dir=data)
@@ -64,6 +64,7 @@ def test_the_api_exports_html_a_gif_and_an_mp4_of_every_step(flown, tmp_path):
     assert flown["missing"].status_code == 404
 
 
+@pytest.mark.browser
 def test_the_command_line_exports_from_the_data_folder_and_the_page_plays_offline(flown, tmp_path):
     e = flown["episode"]
     out = tmp_path / "episode.html"

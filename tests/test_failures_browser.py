@@ -22,6 +22,8 @@ from app.render.jobs_panels import stage_title
 from app.render.panels import region_text, steps_in_region
 from gsmn.attribution import PIPELINE, reported_stages
 
+pytestmark = [pytest.mark.browser, pytest.mark.training]
+
 HORIZON = 40
 
 

@@ -21,6 +21,8 @@ from app.live.runner import Runner
 from gsmn.config import preset, with_overrides
 from gsmn.task.understand import parse_instruction
 
+pytestmark = pytest.mark.slow
+
 HORIZON = 36
 
 
@@ -33,9 +35,9 @@ def wait_done(episodes, timeout: float = 180.0) -> None:
 
 
 @pytest.fixture(scope="module")
-def runner(tmp_path_factory):
+def runner(tmp_path_factory, untrained_checkpoint):
     torch.set_num_threads(1)
-    folder = make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+    folder = untrained_checkpoint
     config = with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)})
     r = Runner(config, checkpoint=str(folder), require_checkpoint=True,
                checkpoints_root=tmp_path_factory.mktemp("empty"), max_episodes=64).start()
@@ -244,7 +246,7 @@ def test_truth_layers_and_figures_are_served(runner):
     assert truth == client.get(f"/api/episodes/{episode.id}/steps/3/maps/truth_relevance.png").content
 
 
-def test_forks_and_comparisons_are_kept_in_the_record_with_every_step(tmp_path):
+def test_forks_and_comparisons_are_kept_in_the_record_with_every_step(tmp_path, untrained_checkpoint):
     """A fork starts with the original's steps 0..t-1, never flown again: the record keeps them too, so the kept
     fork has all its steps; both episodes of a comparison are kept."""
     from app.jobs.db import Database
@@ -252,7 +254,7 @@ def test_forks_and_comparisons_are_kept_in_the_record_with_every_step(tmp_path):
     from app.jobs.kept_store import KeptStore
 
     torch.set_num_threads(1)
-    folder = make_untrained_checkpoint(tmp_path / "gsmn")
+    folder = untrained_checkpoint
     config = with_overrides(preset("tiny"), {"task.horizon": str(HORIZON)})
     db = Database(tmp_path / "record.sqlite")
     store = KeptStore(db, config, 64)

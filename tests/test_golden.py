@@ -7,8 +7,11 @@ from __future__ import annotations
 import runpy
 from pathlib import Path
 
+import pytest
 import torch
 from safetensors.torch import load_file
+
+pytestmark = pytest.mark.unit
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 golden_outputs = runpy.run_path(str(GOLDEN / "make_gsmn_tiny.py"))["golden_outputs"]  # the reference's own recipe

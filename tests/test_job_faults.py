@@ -18,11 +18,13 @@ from pathlib import Path
 
 import httpx
 import pytest
-from support import in_private_mounts
+from support import in_private_mounts, serve_command
 
 from app.jobs.db import RecordError
 from app.jobs.manager import JobManager, new_job_folder
 from gsmn.config import preset
+
+pytestmark = pytest.mark.unit
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -169,15 +171,14 @@ def test_a_job_folder_that_holds_results_is_never_reused(tmp_path):
     assert (old / "results.json").read_text() == "{}"
 
 
+@pytest.mark.server
 def test_an_empty_record_stops_the_server_naming_the_file(tmp_path):
     data = tmp_path / "data"
     data.mkdir()
     (data / "gsmn.sqlite").write_bytes(b"")
     with pytest.raises(RecordError, match=str(data / "gsmn.sqlite")):
         JobManager(data, preset("tiny"), no_checkpoint)
-    done = subprocess.run([sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--port", "0",
-                           "--api-port", "0", "--data-dir", str(data)], capture_output=True, text=True, timeout=120,
-                          cwd=REPO)
+    done = subprocess.run(serve_command(data_dir=data), capture_output=True, text=True, timeout=120, cwd=REPO)
     assert done.returncode == 2 and f"{data / 'gsmn.sqlite'} is empty (0 bytes)" in done.stderr
 
 

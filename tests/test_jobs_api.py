@@ -11,68 +11,26 @@ import json
 import os
 import re
 import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from support import poll
+from support import Serve, poll
 
-from app.live.fixtures import make_untrained_checkpoint
 from gsmn.attribution import BEARINGS, STAGES
 
 HORIZON = 40
 ENV_IDS = [70, 71, 72]
 
-
-class Serve:
-    """A `gsmn serve` process on a data folder, restartable."""
-
-    def __init__(self, data_dir: Path, checkpoint: Path):
-        self.data_dir, self.checkpoint = data_dir, checkpoint
-        self.proc: subprocess.Popen | None = None
-        self.client: httpx.Client | None = None
-        self.lines: list[str] = []
-
-    def start(self) -> None:
-        self.lines = []
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint", str(self.checkpoint),
-             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON), "--data-dir", str(self.data_dir)],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            if m := re.search(r"API: (http://127\.0\.0\.1:\d+)/api", "".join(self.lines)):
-                self.client = httpx.Client(base_url=m.group(1), timeout=60)
-                return
-            time.sleep(0.1)
-        raise AssertionError("gsmn serve did not start:\n" + "".join(self.lines))
-
-    def stop(self, sig: int = signal.SIGINT) -> None:
-        if self.client is not None:
-            self.client.close()
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-    def output(self) -> str:
-        return "".join(self.lines)
+pytestmark = [pytest.mark.server, pytest.mark.training]  # DAggerFM runs
 
 
 @pytest.fixture(scope="module")
-def serve(tmp_path_factory):
-    root = tmp_path_factory.mktemp("jobs")
-    s = Serve(root / "data", make_untrained_checkpoint(root / "gsmn"))
-    s.start()
+def serve(tmp_path_factory, untrained_checkpoint, gsmn_serve):
+    """A `gsmn serve` process on a data folder, restartable (support.Serve)."""
+    s = gsmn_serve(tmp_path_factory.mktemp("jobs") / "data", untrained_checkpoint, horizon=HORIZON)
     try:
         yield s
     finally:

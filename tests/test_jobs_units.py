@@ -19,7 +19,6 @@ from app.jobs.runs import run_progress
 from app.jobs.settings import RUN_PRESETS, run_config, run_settings
 from app.jobs.supervisor import pid_runs
 from app.live.commands import RunnerError
-from app.live.fixtures import make_untrained_checkpoint
 from app.render.jobs_panels import (
     compare_html,
     curve_data,
@@ -34,6 +33,8 @@ from app.render.jobs_panels import (
 from gsmn.attribution import STAGE_COLOURS
 from gsmn.config import preset, with_overrides
 from gsmn.task.metrics import summarize
+
+pytestmark = pytest.mark.unit
 
 
 def episode(evaluation_id: int, position: int, env_id: int, **kw) -> EpisodeRow:
@@ -226,10 +227,11 @@ def test_a_checkpoint_of_unknown_kind_is_refused_before_anything_starts(tmp_path
         jobs.close()
 
 
-def test_expert_data_must_be_a_store_inside_the_data_folder_and_the_refusal_tells_nothing_of_the_outside(tmp_path):
+def test_expert_data_must_be_a_store_inside_the_data_folder_and_the_refusal_tells_nothing_of_the_outside(
+        tmp_path, untrained_checkpoint):
     """A run cleans and links files in its expert store, so `expert_data` is confined to the data folder; outside
     it, an existing folder and a missing one are refused in the same words."""
-    folder = make_untrained_checkpoint(tmp_path / "ckpt")
+    folder = untrained_checkpoint
     jobs = JobManager(tmp_path / "data", preset("tiny"), lambda ref: folder)
     outside = tmp_path / "elsewhere"
     outside.mkdir()

@@ -5,13 +5,7 @@ one. Plus the quantisation's accuracy and an older record's migration."""
 
 from __future__ import annotations
 
-import os
-import re
-import signal
 import sqlite3
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
@@ -19,44 +13,9 @@ import httpx
 import numpy as np
 import pytest
 
-from app.live.fixtures import make_untrained_checkpoint
-
 HORIZON = 40
 
-
-class Server:
-    """`gsmn serve` on a data folder (tiny preset, an untrained checkpoint that flies)."""
-
-    def __init__(self, data: Path, checkpoint: Path, *extra: str):
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "gsmn.cli", "serve", "--preset", "tiny", "--checkpoint", str(checkpoint),
-             "--port", "0", "--api-port", "0", "--task.horizon", str(HORIZON), "--data-dir", str(data), *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.lines: list[str] = []
-        threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
-        deadline, api = time.monotonic() + 180, None
-        while time.monotonic() < deadline and api is None and self.proc.poll() is None:
-            api = re.search(r"API: (http://127\.0\.0\.1:\d+)/api", "".join(self.lines))
-            time.sleep(0.1)
-        assert api, "the server did not start:\n" + "".join(self.lines)
-        page = re.search(r"gsmn dashboard: (http://127\.0\.0\.1:\d+)", "".join(self.lines))
-        self.page = page.group(1) if page else None
-        self.client = httpx.Client(base_url=api.group(1), timeout=60)
-
-    def kill(self) -> None:
-        self.client.close()
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=20)
-
-    def stop(self) -> None:
-        self.client.close()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+pytestmark = pytest.mark.unit  # its `gsmn serve` tests are marked server
 
 
 def kept_steps(data: Path, episode_id: int) -> int:
@@ -80,14 +39,10 @@ def finished(client: httpx.Client, episode_id: int, timeout: float = 120.0) -> d
     raise AssertionError(f"episode {episode_id} did not finish: {body}")
 
 
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory) -> Path:
-    return make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
-
-
-def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, checkpoint):
+@pytest.mark.server
+def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, untrained_checkpoint, gsmn_serve):
     data = tmp_path / "data"
-    server = Server(data, checkpoint)
+    server = gsmn_serve(data, untrained_checkpoint, horizon=HORIZON)
     try:
         done = finished(server.client, server.client.post("/api/episodes", json={"env_id": 70}).json()["id"])
         assert done["status"] == "finished" and done["steps"] > 5
@@ -107,7 +62,7 @@ def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, checkpoint
     finally:
         server.stop()
 
-    server = Server(data, checkpoint)
+    server = gsmn_serve(data, untrained_checkpoint, horizon=HORIZON)
     try:
         c = server.client
         listed = {e["id"]: e for e in c.get("/api/episodes").json()}
@@ -150,8 +105,9 @@ def test_episodes_outlive_sigkill_with_every_step_and_image(tmp_path, checkpoint
         server.stop()
 
 
-def test_retention_removes_the_oldest_unpinned_and_never_a_pinned_one(tmp_path, checkpoint):
-    server = Server(tmp_path / "data", checkpoint)
+@pytest.mark.server
+def test_retention_removes_the_oldest_unpinned_and_never_a_pinned_one(tmp_path, untrained_checkpoint, gsmn_serve):
+    server = gsmn_serve(tmp_path / "data", untrained_checkpoint, horizon=HORIZON)
     try:
         c = server.client
         ids = [finished(c, c.post("/api/episodes", json={"env_id": 70 + i, "policy": "expert"}).json()["id"])["id"]

@@ -14,6 +14,8 @@ import pytest
 from app.browser import field
 from app.live.commands import StartEpisode
 
+pytestmark = pytest.mark.browser
+
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):

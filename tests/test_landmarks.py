@@ -13,6 +13,8 @@ from gsmn.world import catalogue
 from gsmn.world import landmarks as lm
 from gsmn.world.assets import ASSETS_DIR, load_catalogue, write_assets
 
+pytestmark = pytest.mark.unit
+
 SHARED = {"palm tree": 4, "rock": 4, "house": 3, "barrel": 3, "bush": 3, "well": 2, "mushroom": 2, "cone": 2,
           "box": 2, "christmas tree": 2, "tower": 2}
 

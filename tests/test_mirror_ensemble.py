@@ -21,6 +21,8 @@ from gsmn.task.mirror import mirror_instruction, mirror_observation, mirror_task
 from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 CHECKPOINT = REPO_ROOT / "checkpoints" / "gsmn"
 
@@ -104,6 +106,7 @@ def test_ensemble_averages_the_model_and_its_mirror_and_is_mirror_symmetric(flig
     assert ensemble.last_outputs is ensemble.policy.last_outputs  # the dashboard sees the unmirrored maps
 
 
+@pytest.mark.slow
 def test_mirror_ensemble_only_for_learned_systems_and_never_merged_with_a_plain_run(tmp_path):
     with pytest.raises(ValueError, match="learned system"):
         make_policy("oracle", TINY, mirror_ensemble=True)
@@ -165,6 +168,7 @@ def test_ensemble_of_two_checkpoints_averages_their_actions_and_their_mirrors(fl
     assert pair.last_outputs is pair.policy.last_outputs
 
 
+@pytest.mark.slow
 def test_ensemble_with_refuses_other_kinds_and_is_recorded(tmp_path, second_checkpoint):
     with pytest.raises(ValueError, match="learned system"):
         make_policy("oracle", TINY, ensemble_with=[CHECKPOINT])

@@ -44,6 +44,8 @@ from gsmn.task.rollout import Task, task_for_env
 from gsmn.world.env import Action, Env
 from gsmn.world.landmarks import CATALOGUE
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 CHECKPOINTS = {p.name: p for p in (Path(__file__).resolve().parents[1] / "checkpoints").iterdir()
                if (p / "config.json").is_file()}
@@ -220,6 +222,7 @@ def test_signed_kernels_can_subtract_a_channel_and_stay_unit_norm(kind):
         dataclasses.replace(TINY.model, filter_activation="relu")
 
 
+@pytest.mark.slow
 def test_bf16_inference_is_close_and_leaves_training_in_float32(batch):
     fp32 = seeded_model("gsmn")
     config = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, inference_bf16=True))
@@ -426,6 +429,7 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path, batch, kind):
 
 
 @pytest.mark.parametrize("removed", [("grounding_filter",), ("goal_filter",), ("grounding_filter", "goal_filter")])
+@pytest.mark.slow
 def test_a_removed_filter_is_the_original_codes_identity(tmp_path, batch, removed):
     """The original code's module ablations (docs/model.md, "Removing a module"): the maps form a stack, a removed
     filter passes it on, each reader takes its first channels; the removed filter has no weights, trains nothing,
@@ -660,6 +664,7 @@ def test_unknown_kind_is_refused():
 
 
 @pytest.mark.parametrize("kind", ["gsmn", "gs-fpv-mem"])
+@pytest.mark.training
 def test_a_few_steps_on_one_batch_reduce_the_loss(batch, kind):
     model = seeded_model(kind)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-7)

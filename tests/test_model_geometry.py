@@ -21,6 +21,8 @@ from gsmn.model.projection import project_to_ground
 from gsmn.model.semantic_map import accumulate, leaky_integrate
 from gsmn.world.env import Action, Env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 GEOMETRY = MapGeometry(TINY.world.field_size, TINY.model.map_size, TINY.model.robot_map_size)
 SIZE = (TINY.camera.width, TINY.camera.height)

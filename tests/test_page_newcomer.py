@@ -22,6 +22,8 @@ from browser_support import until
 
 from app.browser import field
 
+pytestmark = pytest.mark.browser
+
 HORIZON = 40
 ENV = 76  # two palm trees
 

@@ -4,8 +4,11 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from gsmn.attribution import positive_probability
+
+pytestmark = pytest.mark.unit
 
 spec = importlib.util.spec_from_file_location("probe_grounding",
                                               Path(__file__).parents[1] / "scripts" / "probe_grounding.py")

@@ -25,6 +25,8 @@ from gsmn.task.rollout import EpisodeRecord
 from gsmn.training.collect import collect_expert
 from gsmn.training.store import EpisodeStore
 
+pytestmark = pytest.mark.cluster
+
 TINY = preset("tiny")
 RAY = Path(sys.executable).with_name("ray")
 # A single-node cluster on 127.0.0.1: without this Ray swaps a loopback --node-ip-address for the host's address.

@@ -14,21 +14,18 @@ from pathlib import Path
 
 import pytest
 from support import in_private_mounts
-from test_kept import Server, finished
-
-from app.live.fixtures import make_untrained_checkpoint
+from test_kept import HORIZON, finished
 
 REPO = Path(__file__).resolve().parents[1]
 
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory) -> Path:
-    return make_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "gsmn")
+pytestmark = pytest.mark.unit  # its `gsmn serve` tests are marked server
 
 
-def test_ids_are_taken_when_accepted_never_reused_and_queued_episodes_outlive_a_kill(tmp_path, checkpoint):
+@pytest.mark.server
+def test_ids_are_taken_when_accepted_never_reused_and_queued_episodes_outlive_a_kill(tmp_path, untrained_checkpoint,
+                                                                                   gsmn_serve):
     data = tmp_path / "data"
-    server = Server(data, checkpoint, "--task.horizon", "150")
+    server = gsmn_serve(data, untrained_checkpoint, horizon=150)
     try:
         ids = [server.client.post("/api/episodes", json={"env_id": 70 + k}).json()["id"] for k in range(4)]
         assert ids == [1, 2, 3, 4]
@@ -40,7 +37,7 @@ def test_ids_are_taken_when_accepted_never_reused_and_queued_episodes_outlive_a_
     finally:
         server.stop()
 
-    server = Server(data, checkpoint)
+    server = gsmn_serve(data, untrained_checkpoint, horizon=HORIZON)
     try:
         c = server.client
         again = c.post("/api/episodes", json={"env_id": 75}).json()
@@ -57,9 +54,10 @@ def test_ids_are_taken_when_accepted_never_reused_and_queued_episodes_outlive_a_
         server.stop()
 
 
-def test_a_damaged_stored_map_leaves_the_rest_of_the_episode_readable(tmp_path, checkpoint):
+@pytest.mark.server
+def test_a_damaged_stored_map_leaves_the_rest_of_the_episode_readable(tmp_path, untrained_checkpoint, gsmn_serve):
     data = tmp_path / "data"
-    server = Server(data, checkpoint)
+    server = gsmn_serve(data, untrained_checkpoint, horizon=HORIZON)
     try:
         done = finished(server.client, server.client.post("/api/episodes", json={"env_id": 70}).json()["id"])
         assert done["steps"] > 5
@@ -73,7 +71,7 @@ def test_a_damaged_stored_map_leaves_the_rest_of_the_episode_readable(tmp_path, 
     assert db.execute("PRAGMA quick_check").fetchone()[0] == "ok"  # SQLite cannot see inside a blob
     db.close()
 
-    server = Server(data, checkpoint)
+    server = gsmn_serve(data, untrained_checkpoint, horizon=HORIZON)
     try:
         c = server.client
         episode = c.get(f"/api/episodes/{done['id']}")

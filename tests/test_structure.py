@@ -1,5 +1,6 @@
 """The package's shape: the library (gsmn/) never imports the app (app/), and the model imports without the
-simulator or the mesh builder, so a checkpoint loads where neither is installed."""
+simulator or the mesh builder, so a checkpoint loads where neither is installed. And the tests' own: every test
+module names its tier, and no test of the fast tier starts a `gsmn serve` process or a browser."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+pytestmark = pytest.mark.unit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -231,3 +234,100 @@ def test_the_code_map_names_every_package_and_module_of_the_app():
     assert sorted(actual - set(listed)) == [], "modules missing from docs/dashboard.md's code map"
     assert sorted(set(listed) - actual) == [], "the code map names modules that are gone"
     assert all(listed.values()), "every row names the thread it runs on"
+
+
+# -- the tiers (conftest.py, README.md "Tests") -------------------------------------------------------------------
+TIERS = {"unit", "server", "browser", "training", "cluster", "slow"}  # a module's pytestmark names at least one
+# names that, reached from a test through its module's functions and fixtures, start what needs a tier of its own
+STARTS = {"gsmn_serve": "server", "Serve": "server", "serve_command": "server", "chromium": "browser",
+          "page_on": "browser", "sync_playwright": "browser", "playwright_api": "browser"}
+
+
+def _marks(nodes) -> set[str]:
+    """The marker names in decorators or a pytestmark value: pytest.mark.NAME, pytest.mark.NAME(...)."""
+    names = set()
+    for node in nodes:
+        node = node.func if isinstance(node, ast.Call) else node
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute) and node.value.attr == "mark":
+            names.add(node.attr)
+    return names
+
+
+def tier_problems(source: str) -> list[str]:
+    """What is wrong with a test module's tier: no module-level `pytestmark` naming one of TIERS, a test that
+    reaches a `gsmn serve` process or a browser without the marker that says so, or a `gsmn serve` command line
+    built here rather than through conftest.py's `gsmn_serve` (support.Serve)."""
+    tree = ast.parse(source)
+    module_marks = None
+    functions: dict[str, ast.FunctionDef] = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "pytestmark"
+                                                for t in node.targets):
+            value = node.value
+            module_marks = _marks(value.elts if isinstance(value, (ast.List, ast.Tuple)) else [value])
+        elif isinstance(node, ast.FunctionDef):
+            functions[node.name] = node
+    problems = []
+    if not module_marks or not module_marks & TIERS:
+        problems.append(f"no tier: a module-level pytestmark names none of {sorted(TIERS)}")
+    module_marks = module_marks or set()
+
+    def names(function: ast.FunctionDef) -> set[str]:
+        found = {a.arg for a in function.args.args}
+        for node in ast.walk(function):
+            if isinstance(node, ast.Name):
+                found.add(node.id)
+            elif isinstance(node, ast.Attribute):
+                found.add(node.attr)
+        return found
+
+    for name, function in functions.items():
+        if not name.startswith("test"):
+            continue
+        reached, todo = set(), [name]
+        while todo:  # through the module's own helpers and fixtures
+            for n in names(functions[todo.pop()]) - reached:
+                reached.add(n)
+                if n in functions:
+                    todo.append(n)
+        needed = {STARTS[n] for n in reached if n in STARTS}
+        missing = needed - module_marks - _marks(function.decorator_list)
+        if missing:
+            problems.append(f"{name} starts what needs {sorted(missing)} but is not marked so")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.List) and {"gsmn.cli", "serve"} <= {
+                e.value for e in node.elts if isinstance(e, ast.Constant)}:
+            problems.append(f"line {node.lineno}: a `gsmn serve` command line of its own (use support.serve_command "
+                            "or the gsmn_serve fixture)")
+    return problems
+
+
+def test_every_test_module_has_a_tier_and_fast_tests_start_no_server_and_no_browser():
+    problems = {p.name: tier_problems(p.read_text()) for p in sorted((ROOT / "tests").glob("test_*.py"))}
+    assert {k: v for k, v in problems.items() if v} == {}
+
+
+def test_the_tier_check_sees_a_missing_tier_and_a_server_in_the_fast_tier():
+    assert tier_problems("def test_x():\n    pass\n") == [f"no tier: a module-level pytestmark names none of "
+                                                         f"{sorted(TIERS)}"]
+    fast = "import pytest\npytestmark = pytest.mark.unit\n"
+    server = "@pytest.fixture\ndef api(gsmn_serve):\n    return gsmn_serve()\n\ndef test_x(api):\n    pass\n"
+    assert tier_problems(fast + server) == ["test_x starts what needs ['server'] but is not marked so"]
+    assert tier_problems(fast + server.replace("def test_x", "@pytest.mark.server\ndef test_x")) == []
+    browser = "def test_y():\n    with browser_support.chromium() as b:\n        pass\n"
+    assert tier_problems(fast + browser) == ["test_y starts what needs ['browser'] but is not marked so"]
+    assert tier_problems(fast.replace("unit", "browser") + browser) == []
+    assert tier_problems(fast + "def test_z():\n    subprocess.run(['python', '-m', 'gsmn.cli', 'serve'])\n") \
+        == ["line 4: a `gsmn serve` command line of its own (use support.serve_command or the gsmn_serve fixture)"]
+
+
+def test_the_tiers_are_registered_markers_and_markers_are_strict():
+    import tomllib
+
+    options = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    registered = {m.split(":")[0].strip() for m in options["markers"]}
+    assert TIERS | {"fast"} <= registered
+    assert "--strict-markers" in options["addopts"].split()
+    heavy = next(ast.literal_eval(node.value) for node in ast.parse((ROOT / "tests" / "conftest.py").read_text()).body
+                 if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "HEAVY")
+    assert set(heavy) == TIERS - {"unit"}  # what conftest.py keeps out of the fast tier

@@ -32,6 +32,8 @@ from gsmn.model.losses import objectives_for
 from gsmn.task.metrics import sign_test
 from gsmn.training.store import EpisodeStore
 
+pytestmark = __import__("pytest").mark.training  # its tier (tests/conftest.py), this file's imports left as they are
+
 
 def _leaves(d: dict, prefix: str = "") -> dict:
     out = {}

@@ -18,6 +18,8 @@ from app.browser import field
 from app.live.commands import SetSpeed, StartEpisode
 from app.page.controls import speed_choice
 
+pytestmark = pytest.mark.browser
+
 
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory):

@@ -23,6 +23,8 @@ from gsmn.training.run import RunError, RunFolder, TrainState, read_progress
 from gsmn.training.store import EpisodeStore, StoreError
 from gsmn.training.supervised import make_model_and_optimizer, train_supervised
 
+pytestmark = pytest.mark.training
+
 # Short episodes (the first 20 steps of the expert's flight, conftest.py's `stores`) keep these tests to seconds.
 FLAGS = {"task.horizon": "20", "train.epochs": "3", "train.batch_size": "2", "train.save_every_seconds": "0"}
 CONFIG = with_overrides(preset("tiny"), FLAGS)

@@ -16,6 +16,8 @@ from gsmn.training.collect import MixturePolicy, collect_expert, episode_key, re
 from gsmn.training.store import EpisodeStore, StoreError
 from gsmn.world.env import Env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 
 
@@ -75,6 +77,7 @@ def test_a_write_killed_part_way_leaves_no_episode_and_its_file_is_swept(tmp_pat
     assert not left.exists() and live.exists()
 
 
+@pytest.mark.slow
 def test_collection_resumes_and_parallel_workers_write_the_same_episodes(tmp_path):
     one, two = EpisodeStore(tmp_path / "one"), EpisodeStore(tmp_path / "two")
     assert collect_expert(one, [70, 71], TINY) == [70, 71]

@@ -15,6 +15,8 @@ from gsmn.training.dagger import train_dagger
 from gsmn.training.run import RunFolder
 from gsmn.training.supervised import train_supervised, validate
 
+pytestmark = pytest.mark.training
+
 FLAGS = {"task.horizon": "20", "train.epochs": "2", "train.batch_size": "2", "train.save_every_seconds": "0"}
 CONFIG = with_overrides(preset("tiny"), FLAGS)
 CUDA = torch.cuda.is_available()

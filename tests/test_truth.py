@@ -15,6 +15,8 @@ from gsmn.task.metrics import success
 from gsmn.task.rollout import task_for_env
 from gsmn.world.catalogue import CATALOGUE
 
+pytestmark = pytest.mark.unit
+
 N = 32
 K = len(CATALOGUE)
 

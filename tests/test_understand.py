@@ -13,6 +13,8 @@ from gsmn.task.understand import HEADS, SYNONYMS, parse_instruction, understand
 from gsmn.world.catalogue import CATALOGUE, NOUN_PHRASES
 from gsmn.world.spec import LandmarkSpec, WorldSpec, start_pose
 
+pytestmark = pytest.mark.unit
+
 MODEL = {}  # noun phrase -> (class id, first model of that name)
 for _i, _m in enumerate(CATALOGUE):
     MODEL.setdefault(_m.noun_phrase, (_i, _m))

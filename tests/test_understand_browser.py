@@ -16,6 +16,8 @@ from browser_support import until
 
 from app.browser import field
 
+pytestmark = pytest.mark.browser
+
 HORIZON = 12
 ENV = 172  # a christmas tree and a fir tree, a lighthouse, a satellite dish (and no house)
 

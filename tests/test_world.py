@@ -19,6 +19,8 @@ from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.sim import Simulator, build_spec
 from gsmn.world.spec import WorldSpec, on_field, split_env_ids, split_of, world_for_env
 
+pytestmark = pytest.mark.unit
+
 TINY = preset("tiny")
 IDS = range(300)
 
@@ -198,6 +200,7 @@ def test_intrinsics_match_the_paper_camera():
         sim.close()
 
 
+@pytest.mark.slow
 def test_projected_landmark_centre_lands_on_that_landmark():
     """Project a point on each landmark's vertical axis with the exposed K and T_world_camera; the rendered
     pixel there must belong to that landmark (by segmentation) and show one of its colours, unless a nearer
@@ -273,6 +276,7 @@ def test_env_reset_reuses_and_replaces_worlds():
 
 
 # -- command line -----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_world_json_and_pngs(tmp_path):
     out = subprocess.run([sys.executable, "-m", "gsmn.cli", "world", "--env-id", "17", "--json"],
                          capture_output=True, text=True, check=True).stdout
