@@ -457,10 +457,10 @@ def test_a_failure_card_says_from_which_step_each_stage_went_wrong():
                     goal_right=False, goal_peak_x=1.0, goal_peak_y=2.0, goal_peak_p=0.4, goal_peak_error=9.0,
                     stopped=True, final_to_peak=0.5, failed_from={"perception": None, "grounding": None, "goal": 41})
     card = episode_html(episode(1, 0, 70, stage="goal", attribution=a.to_dict()), "")
-    assert "went wrong" in card and "goal map: wrong from step <b>41</b>" in card
-    assert "perceived: right at the end" in card
+    assert "whole maps vs truth" in card and "goal mass: at chance from step <b>41</b>" in card
+    assert "landmarks read: above chance to the end" in card
     older = {k: v for k, v in a.to_dict().items() if k != "failed_from"}  # recorded before the figures were
-    assert "went wrong" not in episode_html(episode(1, 0, 70, stage="goal", attribution=older), "")
+    assert "whole maps vs truth" not in episode_html(episode(1, 0, 70, stage="goal", attribution=older), "")
 
 
 def test_a_failure_card_of_an_ablation_says_which_heads_have_no_trained_reading():

@@ -1,7 +1,7 @@
-"""The record of kept episodes under faults (app/jobs/kept.py, app/jobs/db.py): a full disk loses no episode (what could not be
-written waits and goes in once there is room, and the API says what the record holds meanwhile), ids are taken from
-the record when an episode is accepted and never given twice across a kill -9, a queued episode outlives the kill as
-not flown, and a step whose stored maps were damaged leaves the rest of its episode readable."""
+"""The record of kept episodes under faults (app/jobs/kept.py, app/jobs/db.py): a full disk loses no episode (what
+could not be written waits and goes in once there is room, and the API says what the record holds meanwhile), ids
+are taken from the record when an episode is accepted and never given twice across a kill -9, a queued episode
+outlives the kill as not flown, and a step whose stored maps were damaged leaves the rest of its episode readable."""
 
 from __future__ import annotations
 
