@@ -285,15 +285,14 @@ class ViewerControls:
         """Show the world of an id typed, once the typing has paused (ENV_TYPED_WAIT), so that the 3D view, the
         instruction and the chips all speak of the world whose id the box holds."""
         shown = self.world_shown.world.env_id if self.world_shown is not None else None
-        timer = getattr(self, "_env_timer", None)
-        if timer is not None:
-            timer.cancel()
+        if self._env_timer is not None:
+            self._env_timer.cancel()
         if env_id == shown:
             return
         typed = time.perf_counter()
 
         def show() -> None:  # not once Run was pressed since, nor when the box holds another id by then
-            if self._closing or getattr(self, "_last_run", 0.0) > typed:
+            if self._closing or self._last_run > typed:
                 return
             if parse_env_id_or_none(self.env_number.value) == env_id:
                 self._post(ShowEnv(env_id), ShowAnswered)

@@ -145,6 +145,8 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         field, cells = runner.config.world.field_size, runner.config.model.map_size
         self._cell_of = lambda x, y: world_cell(x, y, field, cells)
         self._elsewhere_id: int | None = None  # the episode flying elsewhere that this tab does not show
+        self._env_timer = None  # shows a typed environment id's world once the typing pauses (app.page.controls)
+        self._last_run = 0.0  # when Run was last pressed (perf_counter)
         self._build_controls(env_id)
         self._build_views()
         runner.listeners.append(self)
@@ -163,6 +165,8 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
     def close(self) -> None:
         """The tab went: stop listening to the runner and end the UI thread."""
         self._closing = True
+        if self._env_timer is not None:
+            self._env_timer.cancel()
         with contextlib.suppress(ValueError):
             self.runner.listeners.remove(self)
         self._events.put(Close())
