@@ -368,7 +368,7 @@ def test_a_pid_counts_as_the_job_only_when_its_command_line_names_the_job():
 
 def test_the_pages_text():
     e = episode(1, 0, 73, success=False, goal_distance=14.25, stage="grounding", side="left", landmark="pumpkin")
-    assert episode_label(e) == "▶ 73 ✗ failure: left of the pumpkin · 14.2 m · not grounded"
+    assert episode_label(e) == "▶ 73 ✗ not grounded · left of the pumpkin · 14.2 m"
     assert error_summary("its process exited with status 1; its output ends:\nTraceback\n  File x\nValueError: bad") \
         == "its process exited with status 1: ValueError: bad"
     assert error_summary(None) == "" and error_summary("cancelled") == "cancelled"
@@ -423,7 +423,7 @@ def test_the_failure_browser_and_fine_tune_tab_read_plainly():
     ok = episode(1, 0, 70, success=True, goal_distance=1.0, stage=None, attribution=None)
     far = episode(1, 1, 71, goal_distance=17.9, stage="goal_or_control")
     near = episode(1, 2, 72, goal_distance=4.0)
-    assert "✓ success" in episode_label(ok) and "✗ failure" in episode_label(far)
+    assert "✓ success" in episode_label(ok) and "✗ goal or control" in episode_label(far)
     assert episode_colour(ok) != episode_colour(far)
     assert "goal or control" in episode_label(far) and stage_title("goal_or_control") == "goal or control"
     assert [r.env_id for r in sort_rows([ok, far, near], "distance to goal, far first")] == [71, 72, 70]

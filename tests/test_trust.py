@@ -117,3 +117,40 @@ def test_the_failure_card_never_says_right_and_wrong_of_one_thing():
         assert contradiction not in card
     assert went_wrong_text({"perception": None, "goal": 12}) == \
         "landmarks read: above chance to the end · goal mass: at chance from step **12**"
+
+
+def test_failure_rows_before_after_and_a_stopped_result_read_as_words():
+    """Issue 77, item 8: a failure row leads with its verdict and stage (a narrow button loses the distance, not the
+    attribution) and says it all in its hint; before/after names stages as the bars do, never by their keys; the
+    truth rows of an episode stopped early sit in a table of their own, not as raw pipes."""
+    import re
+
+    from test_dashboard_units import _episode_with_steps, _heads
+
+    from app.jobs.results import compare
+    from app.render.jobs_panels import episode_hint, episode_label
+    from app.render.panels import result_markdown
+    from app.render.truth import result_rows
+
+    row = episode(1, 0, 303, goal_distance=27.1, stage="perception_or_grounding", side="right",
+                  landmark="christmas tree")
+    label = episode_label(row)
+    assert label.startswith("▶ 303 ✗ perception or grounding · ") and label.endswith("27.1 m")
+    assert "failure, attributed to: perception or grounding" in episode_hint(row) and "27.1 m" in episode_hint(row)
+
+    db = Database(":memory:")
+    before = db.add_evaluation(system="gsmn", checkpoint="a", env_ids=[70], label="a", status="finished")
+    after = db.add_evaluation(system="gsmn", checkpoint="b", env_ids=[70], label="b", status="finished")
+    db.add_episode(episode(before, 0, 70, stage="goal_or_control"))
+    db.add_episode(episode(after, 0, 70, stage="goal_or_control"))
+    page = compare_html(compare(db, db.evaluation(before), db.evaluation(after)), db.evaluation(after))
+    assert "goal or control" in page and "goal_or_control" not in page
+
+    e = _episode_with_steps()
+    e.status, e.result = "cancelled", None
+    text = result_markdown(e) + result_rows(e, _heads())
+    lines = text.splitlines()
+    first_row = next(i for i, line in enumerate(lines) if line.startswith("| truth at the end"))
+    assert re.fullmatch(r"\|-+\|-+\|", lines[first_row - 1]), text  # under a table's header, not loose pipes
+    rows = result_rows(_episode_with_steps(), _heads())
+    assert rows.startswith("| truth at the end"), rows  # a finished one's rows join its result table

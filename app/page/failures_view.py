@@ -22,6 +22,7 @@ from app.render.jobs_panels import (
     SORTS,
     episode_colour,
     episode_html,
+    episode_hint,
     episode_label,
     error_summary,
     note_html,
@@ -180,6 +181,7 @@ class FailuresTab:
         for k, button in enumerate(self.row_buttons):
             if k < len(shown):
                 button.label = episode_label(shown[k])
+                button.hint = episode_hint(shown[k])
                 button.color = episode_colour(shown[k])
                 button.visible = True
             else:

@@ -123,9 +123,17 @@ def stage_title(stage: str | None) -> str:
 
 
 def episode_label(r: EpisodeRow) -> str:
-    mark = "✓ success" if r.success else "✗ failure"
-    stage = f" · {stage_title(r.stage)}" if r.stage else ""
-    return f"▶ {r.env_id} {mark}: {r.side} of the {r.landmark} · {r.goal_distance:.1f} m{stage}"
+    """A row's button: the outcome and, for a failure, the stage it is attributed to come first, so that a button
+    too narrow for the whole line loses the distance, never the verdict (the hint has it all: `episode_hint`)."""
+    mark = "✓ success" if r.success else f"✗ {stage_title(r.stage)}" if r.stage else "✗ failure"
+    return f"▶ {r.env_id} {mark} · {r.side} of the {r.landmark} · {r.goal_distance:.1f} m"
+
+
+def episode_hint(r: EpisodeRow) -> str:
+    """The whole row in words, shown when the pointer rests on its button."""
+    verdict = "success" if r.success else "failure" + (f", attributed to: {stage_title(r.stage)}" if r.stage else "")
+    return (f"Environment {r.env_id}: {verdict}; asked for the {r.side} side of the {r.landmark}, ended "
+            f"{r.goal_distance:.1f} m from the goal after {r.steps} steps. Click to fly it again in the live view.")
 
 
 def episode_colour(r: EpisodeRow) -> str:
@@ -280,7 +288,7 @@ def _finite(x) -> float:
 def compare_html(c: dict, after: Evaluation | None, run: Run | None = None) -> str:
     def cell(b: dict) -> str:
         mark = "<b style='color:#1e8449'>✓</b>" if b["success"] else "<b style='color:#c0392b'>✗</b>"
-        return f"{mark} {b['goal_distance']:.1f} m{' · ' + b['stage'] if b['stage'] else ''}"
+        return f"{mark} {b['goal_distance']:.1f} m{' · ' + stage_title(b['stage']) if b['stage'] else ''}"
 
     if after is not None and after.status in ACTIVE:
         return note_html(f"Rerunning: {after.done} of {after.total} episodes done.")

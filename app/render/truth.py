@@ -18,7 +18,7 @@ import threading
 import numpy as np
 
 from app.live.models import MapHeads
-from app.live.recording import Episode
+from app.live.recording import FINISHED, Episode
 from app.render.colors import UNSEEN_RGB, apply_colormap
 from app.render.layers import palette_of
 from gsmn.analysis.truth import Agreement, TruthMaps, agreement, first_failures, truth_maps
@@ -138,5 +138,7 @@ def result_rows(episode: Episode, heads: MapHeads | None, success_radius: float 
     def fmt(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.2f}"
 
-    return (f"| truth at the end | perception {fmt(last.perception)}, relevance AUC {fmt(last.relevance)}, goal mass "
-            f"{fmt(last.goal)} |\n| {TRUTH_ROW} | {went_wrong_text(went_wrong(figures, heads))} |\n")
+    # an episode stopped early has no result table above these rows (app.render.panels.result_markdown): their own
+    header = "\n| | |\n|---|---|\n" if episode.result is None or episode.status != FINISHED else ""
+    return (f"{header}| truth at the end | perception {fmt(last.perception)}, relevance AUC {fmt(last.relevance)}, "
+            f"goal mass {fmt(last.goal)} |\n| {TRUTH_ROW} | {went_wrong_text(went_wrong(figures, heads))} |\n")
