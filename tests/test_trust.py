@@ -154,3 +154,14 @@ def test_failure_rows_before_after_and_a_stopped_result_read_as_words():
     assert re.fullmatch(r"\|-+\|-+\|", lines[first_row - 1]), text  # under a table's header, not loose pipes
     rows = result_rows(_episode_with_steps(), _heads())
     assert rows.startswith("| truth at the end"), rows  # a finished one's rows join its result table
+
+
+def test_the_parted_label_leaves_room_for_the_timelines_numbers():
+    """Issue 77, item 10: "parted" near the start or the end of the timeline takes that end's number away (its tick
+    stays); any other mark within a quarter of the timeline goes."""
+    from app.page.compare_view import clear_of
+
+    marks = ((0, "0"), (10, "STOP"), (60, "entered"), (99, "99"))
+    assert clear_of(marks, 5, 100) == ((60, "entered"), (99, "99"), (0, ""))
+    assert clear_of(marks, 50, 100) == ((0, "0"), (10, "STOP"), (99, "99"))
+    assert clear_of(marks, 95, 100) == ((0, "0"), (10, "STOP"), (60, "entered"), (99, ""))

@@ -8,10 +8,12 @@ Worlds here are ones no other browser test uses (174, 181, 192)."""
 from __future__ import annotations
 
 import browser_support
+import numpy as np
 import pytest
 
 from app.browser import field
 from app.live.fixtures import make_untrained_checkpoint
+from app.page.events import CursorMoved
 from gsmn.task.rollout import task_for_env
 
 pytestmark = pytest.mark.browser
@@ -74,6 +76,16 @@ def test_a_comparison_names_who_flew_each_side_and_the_step_of_each_view(dashboa
     assert "step" in title
     summary = page.get_by_text("model other").count()
     assert summary >= 2, "the table and the captions name the second checkpoint"
+    # item 10: the other drone's frustum is made once and moved, never drawn anew (a new node shows at the origin)
+    nodes = viewer.compare.partner_nodes
+    assert nodes is not None
+    for step in (0, len(b.steps) - 1):
+        viewer._events.put(CursorMoved(step))
+        browser_support.until(lambda step=step: viewer.view.cursor == step, 30, f"step {step} shown")
+        frustum = viewer.compare.partner_nodes[0]
+        browser_support.until(lambda step=step: np.allclose(frustum.position, b.steps[step].T_world_camera[:3, 3]),
+                              30, "the frustum moved to the step")
+        assert viewer.compare.partner_nodes is nodes
 
 
 def test_a_refused_run_says_which_episode_is_still_shown(dashboard, page):

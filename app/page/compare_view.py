@@ -24,7 +24,7 @@ import viser
 
 from app.live.compare import ForkEpisode, PolicySpec, StartComparison, diverged_at
 from app.live.recording import Episode
-from app.page.scene import R_to_wxyz, _segments, yaw_wxyz
+from app.page.scene import R_to_wxyz, _has, _segments, yaw_wxyz
 from app.render.colors import data_uri, png_bytes
 from app.render.layers import map_layers
 from app.render.panels import PIXELATED, maps_html
@@ -73,10 +73,21 @@ def cameras_html(jpeg_a: bytes, jpeg_b: bytes, step_a: int, step_b: int, caption
             f'{one(jpeg_b, "#c828c8", "gsmn-camera-b", step_b, caption_b)}</div>')
 
 
+def clear_of(marks: tuple, step: int, steps: int, room: float = 0.25) -> tuple:
+    """The timeline's marks that leave room for a label at `step`: a mark nearer than `room` of the timeline goes, the
+    first and last steps' keep their tick without their number (a label is about a quarter of the slider wide in a
+    1280-pixel window)."""
+    ends = (0, max(steps - 1, 1))
+    near = [m for m in marks if m[0] != step and abs(m[0] - step) < room * steps]
+    return tuple(m for m in marks if m[0] != step and m not in near) + tuple((m[0], "") for m in near
+                                                                              if m[0] in ends)
+
+
 class CompareView:
     def __init__(self, viewer):
         self.viewer = viewer
         self.partner_drawn = False
+        self.partner_nodes: tuple | None = None  # the other drone's frustum and body, once drawn
         self.plot_steps = -1
 
     # -- building ---------------------------------------------------------------------------------------------
@@ -195,9 +206,7 @@ class CompareView:
         part = self.parting(episode, partner) if partner is not None else None
         if part is None or not 0 < part < len(episode.steps) - 1:
             return marks
-        kept = tuple(m for m in marks if m[0] != part and (m[0] in (0, max(len(episode.steps) - 1, 1))
-                                                           or abs(m[0] - part) >= 0.15 * len(episode.steps)))
-        return tuple(sorted((*kept, (part, "parted")), key=lambda m: m[0]))
+        return tuple(sorted((*clear_of(marks, part, len(episode.steps)), (part, "parted")), key=lambda m: m[0]))
 
     # -- drawing ----------------------------------------------------------------------------------------------
     def clear(self) -> None:
@@ -205,11 +214,27 @@ class CompareView:
         if self.partner_drawn:
             for name in ("/partner", "/partner_flown", "/parted"):
                 self.viewer.client.scene.remove_by_name(name)
-            self.partner_drawn = False
+            self.partner_drawn, self.partner_nodes = False, None
             self.summary.content = "No comparison shown: run two policies side by side, or fork an episode."
             self.partner_camera.content = self.partner_maps.content = ""
         if self.note.content.startswith("Showing"):  # "Showing fork 14 of episode 7": a pair no longer shown
             self.note.content = ""
+
+    def _place_partner(self, record) -> None:
+        """The other drone and its camera frustum at `record`: made once, then moved (as the drone is,
+        app.page.scene.Scene.set_drone), so that it never shows for a frame where a new node starts, at the origin."""
+        scene, s = self.viewer.client.scene, self.viewer.scene
+        wxyz, position = R_to_wxyz(record.T_world_camera[:3, :3]), record.T_world_camera[:3, 3]
+        if self.partner_nodes is None or not _has(scene, "/partner/camera") or not _has(scene, "/partner/body"):
+            self.partner_nodes = (
+                scene.add_camera_frustum("/partner/camera", fov=s.vfov, aspect=s.aspect, scale=1.6, thickness=0.05,
+                                         image=None, wxyz=wxyz, position=position, color=PARTNER_RGB),
+                scene.add_box("/partner/body", color=PARTNER_RGB, dimensions=(0.5, 0.36, 0.1),
+                              wxyz=yaw_wxyz(record.yaw), position=record.position))
+            return
+        frustum, body = self.partner_nodes
+        frustum.wxyz, frustum.position = wxyz, position
+        body.wxyz, body.position = yaw_wxyz(record.yaw), record.position
 
     def render(self, episode: Episode, t: int) -> None:
         partner = self.partner_of(episode)
@@ -223,12 +248,7 @@ class CompareView:
         part = self.parting(episode, partner)
         path = np.array([s.position for s in partner.steps[: pt + 1]], np.float32)
         with self.viewer.client.atomic():
-            s = self.viewer.scene
-            scene.add_camera_frustum("/partner/camera", fov=s.vfov, aspect=s.aspect, scale=1.6, thickness=0.05,
-                                     image=None, wxyz=R_to_wxyz(record.T_world_camera[:3, :3]),
-                                     position=record.T_world_camera[:3, 3], color=PARTNER_RGB)
-            scene.add_box("/partner/body", color=PARTNER_RGB, dimensions=(0.5, 0.36, 0.1), wxyz=yaw_wxyz(record.yaw),
-                          position=record.position)
+            self._place_partner(record)
             if len(path) >= 2:
                 path[:, 2] = 0.16
                 scene.add_line_segments("/partner_flown", _segments(path), PARTNER_RGB, thickness=0.2)
