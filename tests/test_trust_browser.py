@@ -83,8 +83,8 @@ def test_a_comparison_names_who_flew_each_side_and_the_step_of_each_view(dashboa
         viewer._events.put(CursorMoved(step))
         browser_support.until(lambda step=step: viewer.view.cursor == step, 30, f"step {step} shown")
         frustum = viewer.compare.partner_nodes[0]
-        browser_support.until(lambda step=step: np.allclose(frustum.position, b.steps[step].T_world_camera[:3, 3]),
-                              30, "the frustum moved to the step")
+        browser_support.until(lambda step=step, frustum=frustum: np.allclose(
+            frustum.position, b.steps[step].T_world_camera[:3, 3]), 30, "the frustum moved to the step")
         assert viewer.compare.partner_nodes is nodes
 
 

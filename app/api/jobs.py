@@ -12,12 +12,13 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, Field
 
 from app.api.deps import COMMAND_TIMEOUT, Jobs, TheRunner
 from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
+from app.jobs.evaluation_export import FORMATS, export_evaluation, export_name
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
 from app.jobs.results import replay_policy
 from app.jobs.settings import MAX_ROLLOUTS, RUN_PRESETS, run_settings
@@ -257,6 +258,18 @@ def list_evaluation_episodes(evaluation_id: EvaluationId, jobs: Jobs, failed_onl
     jobs.evaluation(evaluation_id)
     return [episode_model(e) for e in jobs.db.episodes(evaluation_id, failed_only, landmark, side, ambiguous,
                                                          stage, entered_region)]
+
+
+@router.get("/api/evaluations/{evaluation_id:int}/export", response_class=Response,
+            responses={200: {"content": {"text/csv": {}, "application/json": {}}}, **responses(404, 422, 503)},
+            summary="Its results as a file: CSV, one row per episode naming its split and what flew it, or JSON, "
+                    "the evaluation with its summary and episodes (an unfinished one says how many it holds)")
+def export_evaluation_results(evaluation_id: EvaluationId, jobs: Jobs, format: Annotated[
+        Literal["csv", "json"], Query(description="csv: for a spreadsheet; json: with the summary")] = "csv"
+                              ) -> Response:
+    e = jobs.evaluation(evaluation_id)
+    return Response(export_evaluation(jobs.db, e, format), media_type=FORMATS[format],
+                    headers={"Content-Disposition": f'attachment; filename="{export_name(e, format)}"'})
 
 
 @router.post("/api/evaluations/{evaluation_id:int}/replay", response_model=Replayed, status_code=201,

@@ -7,22 +7,25 @@ from __future__ import annotations
 
 import html
 import math
+import time
 
 import viser
 import viser.uplot
 
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
+from app.jobs.evaluation_export import export_evaluation, export_name
 from app.jobs.results import replay_policy
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
 from app.page.events import ReplayRefused
 from app.page.finetune_view import ENV_TRAIN
+from app.render.estimates import evaluation_estimate, evaluation_remaining
 from app.render.jobs_panels import (
     SORTS,
     episode_colour,
-    episode_html,
     episode_hint,
+    episode_html,
     episode_label,
     error_summary,
     note_html,
@@ -57,6 +60,7 @@ class FailuresTab:
                                                          "two actions are averaged (twice the compute; not in the "
                                                          "paper); replays fly the same way")
                 self.eval_buttons = gui.add_button_group("Evaluation", ("Evaluate", "Cancel", "Resume"))
+                self.eval_estimate = gui.add_markdown("")
                 self.eval_progress = gui.add_progress_bar(0.0, visible=False)
                 self.eval_status = gui.add_markdown("Evaluations run in their own process; their episodes and "
                                                     "failures appear below as they finish.")
@@ -69,6 +73,9 @@ class FailuresTab:
             with gui.add_folder("Failure browser"):
                 self.evaluation = gui.add_dropdown("Evaluation", ("(none yet)",))
                 self.summary = gui.add_html("")
+                self.download = gui.add_button_group("Download", ("CSV", "JSON"),
+                                                     hint="this evaluation's results: one row per episode, with its "
+                                                          "split and what flew it (JSON: with the summary)")
                 self.failed_only = gui.add_checkbox("Failed only", True)
                 self.landmark = gui.add_dropdown("Landmark", (ALL,))
                 self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
@@ -84,6 +91,19 @@ class FailuresTab:
                 self.pager = gui.add_button_group("Page", ("Previous", "Next"))
                 self.detail = gui.add_html(note_html("Pick an episode: it flies again in the live view with "
                                                         "its maps, and its attribution shows here."))
+
+    def _download(self, fmt: str) -> None:
+        """Send the evaluation picked as a CSV or JSON file to this tab (app.jobs.evaluation_export)."""
+        e = self.jobs.db.evaluation(self.evaluation_id) if self.evaluation_id is not None else None
+        if e is None:
+            self.list_note.content = "No evaluation to download yet: evaluate a checkpoint first."
+            return
+        fmt = fmt.lower()
+        data = export_evaluation(self.jobs.db, e, fmt)
+        self.client.send_file_download(export_name(e, fmt), data, save_immediately=True)
+        held = len(self.jobs.db.episodes(e.id))
+        self.list_note.content = (f"Downloaded {export_name(e, fmt)}: {held} episode{'s' if held != 1 else ''}"
+                                  + ("." if e.status == "finished" else f" of {e.total} ({e.status})."))
 
     def _evaluate(self) -> None:
         choice = self.eval_checkpoint.value
@@ -228,13 +248,30 @@ class FailuresTab:
                        f"server's settings differ from the evaluation's."))
         self.detail.content = episode_html(row, note)
 
+    def _chosen_episodes(self) -> int | None:
+        """How many episodes the form would evaluate (None while its ids do not parse)."""
+        try:
+            text = self.eval_ids.value.strip()
+            return len(parse_env_ids(text)) if text else int(self.eval_episodes.value)
+        except ValueError:
+            return None
+
+    def _show_estimate(self) -> None:
+        """Before an evaluation: how long the one in the form would take here (app.render.estimates)."""
+        n = self._chosen_episodes()
+        if n is not None and not self.jobs.db.evaluations(ACTIVE):
+            self.eval_estimate.content = f"*{evaluation_estimate(n, self.jobs.db.evaluations())}*"
+
     def _refresh_evaluation_status(self, evaluations: list[Evaluation]) -> None:
         active = [e for e in evaluations if e.status in ACTIVE]
+        self._show_estimate()
         if active:
             e = active[-1]
             self.eval_progress.visible = True
             self.eval_progress.value = 100.0 * e.done / max(1, e.total)
-            self.eval_status.content = f"Evaluation {e.id} ({html.escape(e.label)}): {e.done} of {e.total} episodes."
+            left = evaluation_remaining(e, time.time(), evaluations)
+            self.eval_status.content = (f"Evaluation {e.id} ({html.escape(e.label)}): {e.done} of {e.total} "
+                                        f"episodes{f', {left}' if left else ''}.")
         elif evaluations and self.eval_progress.visible:
             e = evaluations[-1]
             self.eval_progress.visible = False

@@ -6,6 +6,7 @@ before/after side by side. What the tab says is `app.render.jobs_panels`' (pure 
 from __future__ import annotations
 
 import html
+import time
 
 import viser
 import viser.uplot
@@ -14,6 +15,7 @@ from app.jobs.db import ACTIVE, FAILED, FINISHED, Run
 from app.jobs.results import before_for_run, same_checkpoint
 from app.jobs.settings import RUN_PRESETS, run_settings
 from app.live.commands import RunnerError
+from app.render.estimates import run_estimate, run_remaining
 from app.render.jobs_panels import (
     CURVE_AXES,
     CURVE_SERIES,
@@ -60,6 +62,7 @@ class FinetuneTab:
                                                       "iterations used 0.5)")
                 self.run_envs = gui.add_dropdown("Environments", (ENV_TRAIN,))
                 self.run_buttons = gui.add_button_group("Run", ("Launch", "Cancel", "Resume"))
+                self.run_estimate = gui.add_markdown("")
                 self.run_progress = gui.add_progress_bar(0.0, visible=False)
                 self.run_status = gui.add_markdown("A run trains in its own process; one at a time.")
                 self.curves = gui.add_uplot(
@@ -94,10 +97,7 @@ class FinetuneTab:
         if self.run_envs.value != ENV_TRAIN:
             env_ids = list(self._selected_failures)
         try:
-            settings = run_settings(self.run_preset.value, iterations=int(self.run_iterations.value),
-                                    rollouts_per_iteration=int(self.run_nd.value), dataset_size=int(self.run_m.value),
-                                    beta0=float(self.run_beta0.value), learning_rate=float(self.run_lr.value),
-                                    mirror=float(self.run_mirror.value))
+            settings = self._form_settings()
             r = self.jobs.start_run(settings, checkpoint, env_ids or None,
                                     self.evaluation_id if env_ids else None)
         except (RunnerError, ValueError) as err:
@@ -107,6 +107,23 @@ class FinetuneTab:
         self.run_status.content = (f"Run {r.id} started from {html.escape(short_path(r.init_checkpoint))} on {where}."
                                    + self._launch_warnings(r, env_ids))
         self._refresh()
+
+    def _form_settings(self):
+        return run_settings(self.run_preset.value, iterations=int(self.run_iterations.value),
+                            rollouts_per_iteration=int(self.run_nd.value), dataset_size=int(self.run_m.value),
+                            beta0=float(self.run_beta0.value), learning_rate=float(self.run_lr.value),
+                            mirror=float(self.run_mirror.value))
+
+    def _show_run_estimate(self, runs: list[Run]) -> None:
+        """Before a run: how long the one in the form would take here (app.render.estimates)."""
+        if any(r.status in ACTIVE for r in runs):
+            self.run_estimate.content = ""
+            return
+        try:
+            settings = self._form_settings()
+        except (RunnerError, ValueError):
+            return
+        self.run_estimate.content = f"*{run_estimate(settings.to_dict(), runs)}*"
 
     def _launch_warnings(self, run, env_ids: list[int] | None) -> str:
         """What a run launched on failures should say at once: failures of another checkpoint, or environments of
@@ -210,6 +227,7 @@ class FinetuneTab:
 
     def _refresh_runs(self, runs: list[Run]) -> None:
         self.runs_table.content = runs_html(runs)
+        self._show_run_estimate(runs)
         active = [r for r in runs if r.status in ACTIVE]
         shown = active[-1] if active else (runs[-1] if runs else None)
         if shown is not None:
@@ -218,7 +236,8 @@ class FinetuneTab:
             self.run_progress.value = 100.0 * float(p.get("fraction", 0.0))
             text = html.escape(p.get("text", "starting"))
             if shown.status in ACTIVE:
-                self.run_status.content = f"**Run {shown.id}** (running): {text}."
+                left = run_remaining(shown, time.time())
+                self.run_status.content = f"**Run {shown.id}** (running): {text}{f', {left}' if left else ''}."
             else:
                 self.run_status.content = f"**Run {shown.id}** {shown.status}" + (
                     f": checkpoint **run-{shown.id}**." if shown.status == FINISHED else

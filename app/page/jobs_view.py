@@ -110,6 +110,9 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         for k, button in enumerate(self.row_buttons):
             button.on_click(lambda _, k=k: put(RowPressed(k)))
         self.pager.on_click(lambda e: put(Pressed("page", e.target.value)))
+        self.download.on_click(lambda e: put(Pressed("download", e.target.value)))
+        for box in (self.eval_episodes, self.eval_ids):
+            box.on_update(lambda e: e.client is not None and put(Pressed("estimate", "")))
         self.run_preset.on_update(lambda e: e.client is not None and put(PresetChosen()))
         self.run_buttons.on_click(lambda e: put(Pressed("run", e.target.value)))
         self.run_actions.on_click(lambda e: put(Pressed("run_action", e.target.value)))
@@ -165,6 +168,10 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
                 pages = max(1, math.ceil(len(self.rows) / ROWS))
                 self.page = max(0, min(pages - 1, self.page + (1 if button == "Next" else -1)))
                 self._show_rows()
+            case Pressed("estimate", _):
+                self._show_estimate()
+            case Pressed("download", fmt):
+                self._download(fmt)
             case RowPressed(k):
                 if self.page * ROWS + k < len(self.rows):
                     self._replay(self.rows[self.page * ROWS + k])
@@ -174,6 +181,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
                 self.detail.content = episode_html(row, error_html(f"Not replayed: {html.escape(message)}"))
             case PresetChosen():
                 self._fill_preset()
+                self._show_run_estimate(self.jobs.db.runs())
             case Pressed("run", button):
                 {"Launch": self._launch, "Cancel": self._cancel_run, "Resume": self._resume_run}[button]()
             case Pressed("run_action", button):
@@ -182,6 +190,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
                 self._compare_replay(button)
             case IterationsChanged():
                 self._span_iterations()
+                self._show_run_estimate(self.jobs.db.runs())
 
     def _refresh(self) -> None:
         evaluations = self.jobs.db.evaluations()
