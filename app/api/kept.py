@@ -51,6 +51,8 @@ def list_episodes(
         policy: Annotated[Policy | None, Query(description="who flew")] = None,
         system: Annotated[Text | None, Query(max_length=100, description="what flew: the checkpoint's kind "
                                              "(gsmn, gsmn-no-plan) or oracle")] = None,
+        checkpoint: Annotated[Text | None, Query(max_length=1000, description="the checkpoint that flew (or "
+                                                 "watched the expert), as `checkpoint` in a summary")] = None,
         outcome: Annotated[Literal[OUTCOMES] | None, Query(
             description="success; failure (finished without success); cancelled; failed (an error, or the "
                         "server stopped while it flew); live (flying or queued)")] = None,
@@ -63,7 +65,7 @@ def list_episodes(
     store = keeper.store
     keeper.flush()
     rows = search(keeper.db, env_id, instruction, policy, system, outcome, pinned, since, until, order == "newest",
-                  limit, offset)
+                  limit, offset, checkpoint)
     out = []
     for row in rows:
         episode = store.get_in_memory(int(row["id"]))
@@ -73,7 +75,7 @@ def list_episodes(
                 "keeping": keeper.behind(episode.id)}))
         else:
             out.append(EpisodeSummary(**row_summary(row)))
-    filtered = any(v is not None for v in (env_id, instruction, policy, system, pinned, since, until)) \
+    filtered = any(v is not None for v in (env_id, instruction, policy, system, checkpoint, pinned, since, until)) \
         or outcome not in (None, "live")
     if not filtered and offset == 0:  # queued episodes are not in the record until they fly
         kept = {e.id for e in out}

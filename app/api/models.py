@@ -69,6 +69,14 @@ class EpisodeSummary(BaseModel):
                                    "while steps wait to be written, or where some could not be kept")
     keeping: str | None = Field(None, description="why some of its steps are not in the record (waiting for a full "
                                 "disk, say, or given up); null when they all are")
+    fork_of: int | None = Field(None, description="the episode it forks from (POST /api/episodes/{id}/fork); null "
+                                "when it flew from the start")
+    fork_step: int | None = Field(None, description="the step it forks at: its steps before it are the original's")
+    comparison: int | None = Field(None, description="the comparison it flew in, by its id in the server that flew "
+                                   "it (GET /api/comparisons/{id} while that server runs); null when none")
+    comparison_side: Literal[1, 2] | None = Field(None, description="its side of that comparison: 1 the first "
+                                                  "policy, 2 the one compared with")
+    compared_with: int | None = Field(None, description="the other episode of that comparison")
 
 
 def _result(r: EpisodeResult | None) -> ResultModel | None:
@@ -77,9 +85,12 @@ def _result(r: EpisodeResult | None) -> ResultModel | None:
 
 def summary(e: Episode) -> EpisodeSummary:
     i = e.task.instruction
+    fork = (e.fork.episode_id, e.fork.step) if e.fork is not None else (None, None)
     return EpisodeSummary(id=e.id, status=e.status, env_id=e.env_id, split=e.task.world.split,
                           instruction=i.text, typed_instruction=e.typed, landmark=i.noun_phrase, side=i.side,
                           goal_x=i.goal_x, goal_y=i.goal_y,
                           policy=e.policy, system=e.system, checkpoint=e.checkpoint, steps=len(e.steps),
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
-                          error=e.error, created=e.created)
+                          error=e.error, created=e.created, fork_of=fork[0], fork_step=fork[1],
+                          comparison=e.comparison, comparison_side=e.comparison_side,
+                          compared_with=e.compared_with)

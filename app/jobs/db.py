@@ -460,8 +460,8 @@ class Database:
         return self._all("SELECT * FROM kept_steps WHERE episode_id = ? ORDER BY step", (episode_id,))
 
     def search_kept(self, where: list[str], params: list[Any], newest_first: bool, limit: int,
-                    offset: int) -> list[sqlite3.Row]:
-        sql = "SELECT * FROM kept_episodes" + (f" WHERE {' AND '.join(where)}" if where else "")
+                    offset: int, columns: str = "*") -> list[sqlite3.Row]:
+        sql = f"SELECT {columns} FROM kept_episodes" + (f" WHERE {' AND '.join(where)}" if where else "")
         sql += f" ORDER BY id {'DESC' if newest_first else 'ASC'} LIMIT ? OFFSET ?"
         return self._all(sql, (*params, limit, offset))
 

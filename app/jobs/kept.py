@@ -286,11 +286,15 @@ class EpisodeKeeper(RunnerListener):
 def search(db: Database, env_id: int | None = None, instruction: str | None = None, policy: str | None = None,
            system: str | None = None, outcome: str | None = None, pinned: bool | None = None,
            since: float | None = None, until: float | None = None, newest_first: bool = True, limit: int = 100,
-           offset: int = 0) -> list:
+           offset: int = 0, checkpoint: str | None = None, columns: str = "*") -> list:
     """Kept episodes' rows matching every filter given: `instruction` a case-insensitive substring; `outcome`
     success, failure (finished without success), cancelled, failed (an error, or the server stopped) or live;
-    `since` / `until` unix times of the start."""
+    `since` / `until` unix times of the start; `checkpoint` the folder that flew or watched, as the row has it.
+    `columns`: the columns read (e.g. "id" to count them)."""
     where, params = [], []
+    if checkpoint is not None:
+        where.append("checkpoint = ?")
+        params.append(checkpoint)
     if env_id is not None:
         where.append("env_id = ?")
         params.append(int(env_id))
@@ -320,13 +324,22 @@ def search(db: Database, env_id: int | None = None, instruction: str | None = No
     if until is not None:
         where.append("created <= ?")
         params.append(float(until))
-    return db.search_kept(where, params, newest_first, limit, offset)
+    return db.search_kept(where, params, newest_first, limit, offset, columns)
+
+
+def policies_flown(db: Database) -> list[tuple[str, str | None]]:
+    """Each policy and checkpoint that flew a kept episode (the expert once, whoever watched), newest first."""
+    seen: dict[tuple[str, str | None], None] = {}
+    for row in db.search_kept([], [], True, 10**9, 0, "policy, checkpoint"):
+        seen.setdefault((row["policy"], None if row["policy"] == "expert" else row["checkpoint"]), None)
+    return list(seen)
 
 
 def row_summary(row) -> dict[str, Any]:
     """A kept row as the API's episode summary fields (app.api.models.EpisodeSummary)."""
     task = json.loads(row["task"])
     i = task["instruction"]
+    fork, comparison = task.get("fork") or {}, task.get("comparison") or {}  # app.jobs.kept_store.episode_relation
     return {"id": int(row["id"]), "status": row["status"], "env_id": int(row["env_id"]), "split": row["split"],
             "instruction": row["instruction"], "typed_instruction": task.get("typed"),
             "landmark": i["noun_phrase"], "side": i["side"],
@@ -334,4 +347,6 @@ def row_summary(row) -> dict[str, Any]:
             "checkpoint": row["checkpoint"], "steps": int(row["steps"]), "horizon": int(row["horizon"]),
             "steps_per_second": None, "result": json.loads(row["result"]) if row["result"] else None,
             "error": row["error"], "pinned": bool(row["pinned"]), "created": float(row["created"]),
-            "bytes": int(row["bytes"]), "kept_steps": int(row["steps"])}
+            "bytes": int(row["bytes"]), "kept_steps": int(row["steps"]), "fork_of": fork.get("episode_id"),
+            "fork_step": fork.get("step"), "comparison": comparison.get("id"),
+            "comparison_side": comparison.get("side"), "compared_with": comparison.get("with")}

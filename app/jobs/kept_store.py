@@ -90,12 +90,28 @@ def step_of_row(row, where: str = "the record") -> StepRecord:
                       damaged=damaged)
 
 
-def task_json(task: Task, world_config: WorldConfig, typed: str | None = None) -> str:
+def task_json(task: Task, world_config: WorldConfig, typed: str | None = None, relation: dict | None = None) -> str:
     """The parsed instruction (the template flown) and the text typed, the demonstration path, and the world settings
     the world is drawn with (so that the episode reads back the same under a server, or `gsmn export`, started with
-    other settings)."""
+    other settings); and `relation` (`episode_relation`): where a fork starts, which side of a comparison."""
     return json.dumps({"instruction": asdict(task.instruction), "typed": typed,
-                       "path": np.asarray(task.path).round(4).tolist(), "world": asdict(world_config)})
+                       "path": np.asarray(task.path).round(4).tolist(), "world": asdict(world_config),
+                       **(relation or {})})
+
+
+def episode_relation(episode: Episode) -> dict[str, Any]:
+    """What the task JSON says of an episode's relation to another: `fork` {episode_id, step} (steps 0..step-1 are
+    that episode's), `comparison` {id, side, with} (the comparison's id in the server that flew it, 1 for the
+    policy chosen first and 2 for the one compared with, and the other episode's id). Kept in the task JSON rather
+    than in columns of their own: a record keeps its schema, and an older server still reads it (it ignores keys it
+    does not know)."""
+    out: dict[str, Any] = {}
+    if episode.fork is not None:
+        out["fork"] = {"episode_id": int(episode.fork.episode_id), "step": int(episode.fork.step)}
+    if episode.comparison is not None:
+        out["comparison"] = {"id": int(episode.comparison), "side": episode.comparison_side,
+                             "with": episode.compared_with}
+    return out
 
 
 # -- the record of episodes -----------------------------------------------------------------------------------------
@@ -178,6 +194,6 @@ def kept_row(episode: Episode, world_config: WorldConfig) -> dict[str, Any]:
     world = episode.task.world
     return {"id": episode.id, "created": episode.created, "status": episode.status, "env_id": world.env_id,
             "split": world.split, "instruction": episode.instruction,
-            "task": task_json(episode.task, world_config, episode.typed), "policy": episode.policy,
-            "system": episode.system, "checkpoint": episode.checkpoint, "horizon": episode.horizon,
-            "error": episode.error}
+            "task": task_json(episode.task, world_config, episode.typed, episode_relation(episode)),
+            "policy": episode.policy, "system": episode.system, "checkpoint": episode.checkpoint,
+            "horizon": episode.horizon, "error": episode.error}

@@ -147,8 +147,8 @@ class Comparisons:
                                         spec.checkpoint) for spec in c.policies)
         comparison = Comparison(self._next, episodes)
         self._next += 1
-        for e in episodes:
-            e.comparison = comparison.id
+        for e, other in zip(episodes, episodes[::-1], strict=True):
+            e.comparison, e.compared_with = comparison.id, other.id
             r.episodes.add(e)
         self.store[comparison.id] = comparison
         while len(self.store) > MAX_COMPARISONS:

@@ -133,6 +133,7 @@ class Episode:
     snapshots: Any = None  # gsmn.task.fork.FlightSnapshots once it flies
     fork: Any = None  # app.live.compare.ForkPoint: where this episode forks from another (steps 0..t-1 are its)
     comparison: int | None = None  # the comparison it flies in (app.live.compare)
+    compared_with: int | None = None  # the other episode of that comparison
     origin: str | None = None  # the browser tab that started it (app.live.commands.Command.origin); None: the API
     typed: str | None = None  # the instruction as typed (gsmn.task.understand); the task's is the template flown
 
@@ -147,6 +148,14 @@ class Episode:
     @property
     def live(self) -> bool:
         return self.status in LIVE
+
+    @property
+    def comparison_side(self) -> int | None:
+        """1 for a comparison's first policy, 2 for the one compared with (a comparison's episodes are made in its
+        order, so the first has the smaller id); None outside a comparison."""
+        if self.comparison is None:
+            return None
+        return 1 if self.compared_with is None or self.id < self.compared_with else 2
 
     def steps_per_second(self) -> float | None:
         if self.first_frame is None or len(self.steps) < 2:

@@ -2,6 +2,11 @@
 page or over the API, replays one in the live view, pins it and exports it; a "Share" folder that makes a link to the
 step shown ("Copy link") and downloads the episode as HTML or GIF; and the link read on load.
 
+**The list.** A row says who flew the episode (the checkpoint by the name it is offered by, as a mirror ensemble, or
+the expert), what it comes from (a fork's original and step, a comparison's side), and how it ended in its result
+line's words and number; successes are green, failures red, the rest grey, and the text wraps rather than being cut
+off. "Flown by" offers each checkpoint that flew a kept episode; the note counts as the storage line does.
+
 **Links.** viser gives the server no client's URL, so the page reads its own: an element of the page holds a small
 script (an image's onerror handler, which viser's HTML element runs) that writes `location.search` into a hidden
 text field, and the field's update reaches the server with its client. `/?episode=123&step=40&layers=goal,relevance`
@@ -20,11 +25,12 @@ import threading
 import time
 import traceback
 from datetime import datetime
+from pathlib import Path
 from urllib.parse import parse_qs
 
 import viser
 
-from app.jobs.kept import row_summary, search
+from app.jobs.kept import policies_flown, row_summary, search
 from app.live.commands import RunnerListener
 from app.page.events import CursorMoved, EpisodeEnded, EpisodeStarted, OptionsChanged
 from app.render.panels import error_html
@@ -35,7 +41,16 @@ LINK_FIELD = "gsmn-link"
 OUTCOME_CHOICES = {"any outcome": None, "success": "success", "failure": "failure", "cancelled": "cancelled",
                    "failed": "failed"}
 WHEN_CHOICES = {"any time": None, "last hour": 3600.0, "last 24 hours": 86400.0, "last 7 days": 7 * 86400.0}
-POLICY_CHOICES = {"any policy": None, "model": "model", "mirror ensemble": "mirror", "expert": "expert"}
+ANY_POLICY = "any policy"
+OUTCOME_COLORS = {"success": "green", "failure": "red"}  # a row's button; cancelled, failed and live ones grey
+# the rows' buttons (those after the list's hidden marker, in the Episodes tab) wrap their text instead of cutting
+# it off, and read from the left; viser sets each button's height inline
+_ROWS = "div:has(> .gsmn-episode-list) ~ div .mantine-Button-"
+LIST_STYLE = ("<div class='gsmn-episode-list' style='display:none'></div><style>"
+              f"{_ROWS}root{{height:auto !important;min-height:2em;padding-top:5px;padding-bottom:5px}}"
+              f"{_ROWS}inner{{justify-content:flex-start}}"
+              f"{_ROWS}label{{white-space:normal;text-align:left;line-height:1.35;overflow:visible;height:auto}}"
+              "</style>")
 
 # the script that tells the server this tab's URL: it finds the hidden field, hides its row, and types
 # location.search into it (with the time, so the same link opened twice is two updates)
@@ -74,12 +89,89 @@ def link_html(query: str | None) -> str:
             f"<img src='data:,' alt='' style='display:none' onerror=\"{fill}\"></div>")
 
 
-def row_label(row: dict) -> str:
+# -- a kept episode's row: `row` is its summary (app.jobs.kept.row_summary); `names` a checkpoint folder's name -------
+def checkpoint_names(runner) -> dict[str, str]:
+    """The name each checkpoint folder is offered by (gsmn, table2/no-ground, run-3), by its resolved path."""
+    names = {}
+    for info in runner.checkpoint_list():
+        with contextlib.suppress(OSError):
+            names.setdefault(Path(info.path).resolve().as_posix(), info.name)
+    return names
+
+
+def flier(policy: str, checkpoint: str | None, names: dict[str, str]) -> str:
+    """Who flew, as the comparison's captions say it: the expert, or the model by its checkpoint's name (a folder
+    offered by no name: its last part), and whether as a mirror ensemble."""
+    if policy == "expert":
+        return "expert"
+    name = names.get(checkpoint, checkpoint) if checkpoint else "?"
+    if Path(name).is_absolute():
+        name = Path(name).name
+    return f"model {name}" + (", mirror ensemble" if policy == "mirror" else "")
+
+
+def outcome(row: dict) -> str:
+    """success or failure once finished, else its status (cancelled, failed, running...)."""
     result = row["result"]
-    outcome = ("success" if result["success"] else "failure") if result else row["status"]
+    return ("success" if result["success"] else "failure") if row["status"] == "finished" and result else row["status"]
+
+
+def ending(row: dict) -> str:
+    """How it ended, in the words and number of its result line: 'said STOP after 99 steps' counts the actions flown
+    (the steps recorded count its start too, one more); unfinished, the timeline's last step."""
+    r = row["result"]
+    if row["status"] == "finished" and r is not None:
+        return f"{'said STOP' if r['stopped'] else 'ran out of steps'} after {r['steps']} steps"
+    n = row["steps"]
+    return f"at step {n - 1}" if n else "before its first step"
+
+
+def relation(row: dict) -> list[str]:
+    """Where it comes from: a fork's original and step, a comparison's side and other episode."""
+    out = []
+    if row.get("fork_of") is not None:
+        out.append(f"fork of #{row['fork_of']} at step {row['fork_step']}")
+    if row.get("comparison") is not None:
+        other = f" with #{row['compared_with']}" if row.get("compared_with") is not None else ""
+        out.append(f"side {row['comparison_side']} of a comparison{other}")
+    return out
+
+
+def row_label(row: dict, names: dict[str, str]) -> str:
     when = datetime.fromtimestamp(row["created"]).strftime("%d %b %H:%M")
-    pin = " · pinned" if row["pinned"] else ""
-    return f"#{row['id']} · {outcome}{pin} · {row['instruction']} · env {row['env_id']} · {row['steps']} steps · {when}"
+    parts = [f"#{row['id']}", outcome(row) + (" · pinned" if row["pinned"] else ""), row["instruction"],
+             f"env {row['env_id']}", flier(row["policy"], row["checkpoint"], names), *relation(row), ending(row),
+             when]
+    return " · ".join(parts)
+
+
+def row_hint(row: dict, names: dict[str, str]) -> str:
+    """The button's hint: what the label leaves out."""
+    r = row["result"]
+    watched = f", {flier('model', row['checkpoint'], names)} watching" if (
+        row["policy"] == "expert" and row["checkpoint"]) else ""
+    parts = [f"Episode {row['id']}, flown {datetime.fromtimestamp(row['created']).strftime('%d %b %Y %H:%M:%S')}"
+             f"{watched}", f"{r['goal_distance']:.1f} m from the goal" if r else None,
+             f"typed as \"{row['typed_instruction']}\"" if row.get("typed_instruction") else None,
+             f"checkpoint folder {row['checkpoint']}" if row["checkpoint"] else None,
+             row["error"].rstrip(".") if row["error"] else None, "click to replay it at its last step"]
+    return ". ".join(p for p in parts if p) + "."
+
+
+def row_color(row: dict) -> str:
+    return OUTCOME_COLORS.get(outcome(row), "gray")
+
+
+def list_note(shown: int, matching: int, total: int, filtered: bool) -> str:
+    """What the list shows, counted as the storage line under it counts the kept episodes."""
+    if not shown:
+        return "No kept episode matches the search." if total else "No episode kept yet: run one."
+    note = f"{shown} of {total} kept episode{'s' if total != 1 else ''} shown"
+    if filtered:
+        note += f": {matching} match{'es' if matching == 1 else ''} the search"
+    if matching > shown:
+        note += ", the newest first (narrow the search for older ones)"
+    return note + ". Click one to replay it."
 
 
 class EpisodesView(RunnerListener):
@@ -91,6 +183,7 @@ class EpisodesView(RunnerListener):
         self.client: viser.ClientHandle = viewer.client
         self.presenter = presenter  # app.page.presenter.Presenter, turned on by a link's presenter=1
         self.rows: list[dict] = []
+        self.policies: dict[str, tuple[str | None, str | None]] = {ANY_POLICY: (None, None)}  # choice -> its filter
         self.selected: int | None = None
         self._closing = False
         self._shown: tuple | None = None
@@ -127,16 +220,18 @@ class EpisodesView(RunnerListener):
             self.search_text = gui.add_text("Instruction has", "", hint="a part of the instruction, any case")
             self.search_env = gui.add_text("Environment", "", hint="an environment id, or empty for any")
             self.search_outcome = gui.add_dropdown("Outcome", tuple(OUTCOME_CHOICES))
-            self.search_policy = gui.add_dropdown("Policy", tuple(POLICY_CHOICES))
+            self.search_policy = gui.add_dropdown("Flown by", (ANY_POLICY,), hint="the policy: each checkpoint "
+                                                  "flown (as itself or a mirror ensemble), or the expert")
             self.search_when = gui.add_dropdown("Flown", tuple(WHEN_CHOICES))
             self.search_pinned = gui.add_checkbox("Pinned only", False)
             self.search_button = gui.add_button("Search", icon=viser.Icon.SEARCH)
             self.list_note = gui.add_markdown("")
+            self.list_style = gui.add_html(LIST_STYLE)
             self.row_buttons = [gui.add_button(f"row {k}", visible=False) for k in range(ROWS)]
             self.storage = gui.add_markdown("")
         self.search_button.on_click(lambda _: self.refresh())
         for control in (self.search_outcome, self.search_policy, self.search_when, self.search_pinned):
-            control.on_update(lambda _: self.refresh())
+            control.on_update(lambda e: self.refresh() if e.client is not None else None)  # not refresh's own
         for k, button in enumerate(self.row_buttons):
             button.on_click(lambda event, k=k: self._open_row(k, event.client))
 
@@ -149,30 +244,50 @@ class EpisodesView(RunnerListener):
                 self.list_note.content = error_html("The environment is a number (e.g. 70), or empty for any.")
                 return
             self.keeper.flush(2.0)
+            names = checkpoint_names(self.viewer.runner)
+            self._offer_policies(names)
+            policy, checkpoint = self.policies.get(self.search_policy.value, (None, None))
             within = WHEN_CHOICES[self.search_when.value]
-            rows = search(self.db, env_id=int(env_text) if env_text else None,
-                          instruction=self.search_text.value.strip() or None,
-                          policy=POLICY_CHOICES[self.search_policy.value],
-                          outcome=OUTCOME_CHOICES[self.search_outcome.value],
-                          pinned=True if self.search_pinned.value else None,
-                          since=time.time() - within if within else None, limit=ROWS + 1)
+            filters = dict(env_id=int(env_text) if env_text else None,
+                           instruction=self.search_text.value.strip() or None, policy=policy, checkpoint=checkpoint,
+                           outcome=OUTCOME_CHOICES[self.search_outcome.value],
+                           pinned=True if self.search_pinned.value else None,
+                           since=time.time() - within if within else None)
+            rows = search(self.db, **filters, limit=ROWS)
+            matching = len(search(self.db, **filters, limit=10**9, columns="id"))
+            counts = self.db.kept_counts()
         except Exception as e:  # noqa: BLE001 - a record that cannot be read is said, not raised into viser
             self.list_note.content = error_html(f"Cannot read the record: {html.escape(str(e))}")
             return
-        self.rows = [row_summary(r) for r in rows[:ROWS]]
-        more = " (the newest shown; narrow the search for older ones)" if len(rows) > ROWS else ""
-        self.list_note.content = (f"{len(self.rows)} episode{'s' if len(self.rows) != 1 else ''} kept{more}. "
-                                  "Click one to replay it." if self.rows else "No kept episode matches.")
-        for k, button in enumerate(self.row_buttons):
-            if k < len(self.rows):
-                button.label = row_label(self.rows[k])
-                button.visible = True
-            else:
-                button.visible = False
-        counts = self.db.kept_counts()
+        self.rows = [row_summary(r) for r in rows]
+        filtered = any(v is not None for v in filters.values())
+        self.list_note.content = list_note(len(self.rows), matching, counts["episodes"], filtered)
+        self._show_rows(names)
         self.storage.content = (f"*{counts['episodes']} kept, {counts['pinned']} pinned: "
                                 f"{self.db.kept_bytes() / 1e6:.1f} MB of {self.keeper.limit_bytes / 1e6:.0f} MB; past "
                                 "it the oldest unpinned are removed.*")
+
+    def _offer_policies(self, names: dict[str, str]) -> None:
+        """The Policy filter's choices: any, each checkpoint flown (itself, or as a mirror ensemble), the expert."""
+        choices: dict[str, tuple[str | None, str | None]] = {ANY_POLICY: (None, None)}
+        for policy, checkpoint in policies_flown(self.db):
+            label = flier(policy, checkpoint, names)
+            if label in choices:  # two folders of one name
+                label += f" ({checkpoint})"
+            choices[label] = (policy, checkpoint)
+        self.policies = choices
+        if tuple(choices) != tuple(self.search_policy.options):
+            self.search_policy.options = tuple(choices)  # a choice no longer flown (removed) goes back to any
+
+    def _show_rows(self, names: dict[str, str]) -> None:
+        """Each row's button: who flew it, how it ended, green for a success and red for a failure."""
+        for k, button in enumerate(self.row_buttons):
+            if k < len(self.rows):
+                row = self.rows[k]
+                button.label, button.hint, button.color = row_label(row, names), row_hint(row, names), row_color(row)
+                button.visible = True
+            else:
+                button.visible = False
 
     def on_episode_end(self, episode) -> None:  # the runner's thread: the list gains it once written
         threading.Thread(target=self._refresh_later, daemon=True).start()
