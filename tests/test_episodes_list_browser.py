@@ -1,9 +1,11 @@
-"""In headless Chromium, the Episodes tab as new users meet it (issue 77, item 5).
+"""In headless Chromium, the Episodes tab and a fresh tab as new users meet them (issue 77, items 5 and 17).
 
 The Episodes list names who flew each episode (the checkpoint, as a mirror ensemble, the expert), marks a fork and
 a comparison's side, draws a success green, a failure red and a cancelled one grey with no text cut off, says how it
 ended in the words and number of its result line, offers each checkpoint flown under "Flown by", and counts what
-it shows as the storage line under it counts the kept episodes.
+it shows as the storage line under it counts the kept episodes. A fresh tab starts on the server's world with "Show
+episodes started elsewhere" unticked: not on the world another tab showed last, and not jumping to another tab's
+run.
 
 Worlds here are ones no other test uses (203, 211, 217, 226)."""
 
@@ -16,7 +18,7 @@ import pytest
 from browser_support import until
 
 from app.browser import field
-from app.live.commands import CancelEpisode, StartEpisode
+from app.live.commands import CancelEpisode, SetSpeed, StartEpisode
 from app.live.compare import ForkEpisode, PolicySpec, StartComparison
 from app.live.fixtures import make_untrained_checkpoint
 
@@ -137,3 +139,46 @@ def test_the_policy_filter_offers_each_checkpoint_flown(dashboard, browser):
     browser_support.poll(lambda: rows(page), lambda r: set(r) == expert_flown, "the expert's two episodes")
     page.close()
 
+
+def test_a_fresh_tab_starts_on_its_own(dashboard, browser):
+    """Tab A shows world 226 and flies there; B, opened after A's world, and C, opened while A's episode flies, start
+    on the server's world with the box unticked, stay there, and say that an episode flies elsewhere."""
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+
+    def open_tab(name: str):
+        known = set(dashboard.tabs)
+        page = context.new_page()
+        page.set_default_timeout(60_000)
+        page.goto(dashboard.urls.page)
+        page.get_by_role("button", name="Run", exact=True).wait_for()
+        (tab_id,) = until(lambda: tuple(set(dashboard.tabs) - known), what=f"tab {name} to connect")
+        return page, dashboard.tabs[tab_id].viewer
+
+    a, viewer_a = open_tab("a")
+    field(a, "Environment id").fill("226")
+    until(lambda: viewer_a.world_shown is not None and viewer_a.world_shown.world.env_id == 226, 60, "A on 226")
+    b, viewer_b = open_tab("b")
+    until(lambda: viewer_b.world_shown is not None, 60, "B's first world")
+    assert viewer_b.world_shown.world.env_id == SERVER_WORLD, "a fresh tab opened on another tab's world"
+    assert field(b, "Environment id").input_value() == str(SERVER_WORLD)
+    assert not viewer_b.watch_others.value and not field(b, "Show episodes started elsewhere").is_checked()
+
+    field(a, "Policy").click()
+    a.get_by_role("option", name="Expert (oracle)", exact=True).click()
+    dashboard.runner.call(SetSpeed(5.0))  # slow enough for C to open while it flies
+    try:
+        a.get_by_role("button", name="Run", exact=True).click()
+        until(lambda: viewer_a.view.episode is not None and viewer_a.view.episode.live, what="A's episode")
+        episode = viewer_a.view.episode
+        c, viewer_c = open_tab("c")
+        for page, viewer in ((b, viewer_b), (c, viewer_c)):
+            page.get_by_text(f"Episode {episode.id} is flying, started in another tab").first.wait_for()
+            assert viewer.view.episode is None and viewer.world_shown.world.env_id == SERVER_WORLD
+            assert not viewer.watch_others.value
+        assert episode.live, "A's episode ended before C opened: the test's timing is off"
+    finally:
+        dashboard.runner.call(SetSpeed(None))
+    dashboard.runner.call(CancelEpisode(episode.id))
+    until(lambda: not episode.live, what="A's episode to end")
+    assert viewer_b.view.episode is None and viewer_c.view.episode is None  # neither jumped to it
+    context.close()

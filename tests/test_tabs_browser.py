@@ -1,10 +1,10 @@
 """In headless Chromium, with three tabs on one dashboard: every tab has its own view.
 
 Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
-neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (which
-shows episodes started elsewhere, the default) watches A's. C showing a world mid-flight ends nobody's episode and
-moves nobody else, and its "Watch episode N" goes back to it. The pace, set in code or chosen in one tab, shows in
-every tab's Speed box. A tab that closes leaves the runner's listeners."""
+neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (once
+its "Show episodes started elsewhere" is ticked: a new tab starts unticked, on its own) watches A's. C showing a
+world mid-flight ends nobody's episode and moves nobody else, and its "Watch episode N" goes back to it. The pace,
+set in code or chosen in one tab, shows in every tab's Speed box. A tab that closes leaves the runner's listeners."""
 
 from __future__ import annotations
 
@@ -61,7 +61,9 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     tab_a, tab_b, tab_c = list(dashboard.tabs.values())  # in the order they connected
     until(lambda: shown(b) == {"episode": old.id, "step": 3}, what="tab B on the old episode at step 3")
     assert not tab_b.viewer.watch_others.value  # opening a kept episode keeps the tab on it
-    assert tab_a.viewer.watch_others.value and tab_c.viewer.watch_others.value
+    assert not tab_a.viewer.watch_others.value and not tab_c.viewer.watch_others.value  # a new tab: its own
+    field(c, "Show episodes started elsewhere").check()  # C follows the others' episodes
+    until(lambda: tab_c.viewer.watch_others.value, what="C's box ticked")
 
     # A shows another world: B's world and episode stay
     box = field(a, "Environment id")

@@ -140,9 +140,9 @@ class ViewerControls:
             self.playback = gui.add_button_group("Control", ("Play", "Pause", "Step", "Stop"))
             self.timeline = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0)
             self.follow = gui.add_checkbox(FOLLOW_LABEL, True)
-            self.watch_others = gui.add_checkbox(WATCH_LABEL, True,
-                                                 hint="episodes flown from other tabs or the API appear here as "
-                                                      "they start; untick to keep this tab on its own")
+            self.watch_others = gui.add_checkbox(WATCH_LABEL, False,
+                                                 hint="ticked, episodes flown from other tabs or the API appear here "
+                                                      "as they start; unticked (a new tab), this tab stays on its own")
             speed = speed_choice(self.runner.speed)
             self.speed = gui.add_dropdown("Speed", self._speed_options(speed), initial_value=speed,
                                           hint="the simulator's pace, for every tab")

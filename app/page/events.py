@@ -19,7 +19,7 @@ class Event:
 @dataclass(frozen=True, eq=False)
 class WorldChanged(Event):
     shown: WorldShown
-    forced: bool = False  # shown whatever its origin (a new tab's first world)
+    forced: bool = False  # a new tab's first world: shown whatever its origin, unless a link opened one before
 
 
 @dataclass(frozen=True, eq=False)

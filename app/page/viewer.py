@@ -12,9 +12,9 @@ shown, counterfactual and layers (viser's client-level GUI and scene handles), s
 showing another world never moves another's. Shared on purpose, and said so on the page: the simulator (one episode
 flies at a time; Run, Pause, Step, Stop and Speed act on it for every tab) and the jobs. Commands carry the tab's
 `origin`, and so do the episodes and worlds they make: a tab shows its own worlds only, its own episodes, and
-episodes started elsewhere (other tabs, the API) while its "Show episodes started elsewhere" box is ticked (the
-default; opening a kept episode or a link unticks it, and so does presenter mode). An episode flying that the tab
-does not show is said under the status line, with a "Watch episode N" button.
+episodes started elsewhere (other tabs, the API) while its "Show episodes started elsewhere" box is ticked (unticked
+in a new tab, which starts on the server's world; opening a kept episode or a link unticks it, and so does presenter
+mode). An episode flying that the tab does not show is said under the status line, with a "Watch episode N" button.
 """
 
 from __future__ import annotations
@@ -153,14 +153,14 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         self._events.put(SpeedChanged(runner.speed))  # the pace may have changed since the box was built
         self.thread = threading.Thread(target=self._loop, name=f"gsmn-viewer-{client.client_id}", daemon=True)
         self.thread.start()
-        # what a new tab shows first: the episode flying now, else the world shown last, else its own
-        live, shown = runner.live, runner.shown
-        if live is not None:
-            self._events.put(EpisodeStarted(live, opened=True))
-        elif shown is not None:
+        # a new tab starts on its own: the server's world, not the world or episode another tab shows (one flying
+        # is said under the status line, with a button to watch it); asked with no origin, so no other tab takes it
+        shown = runner.shown
+        if shown is not None and shown.world.env_id == env_id:
             self._events.put(WorldChanged(shown, forced=True))
         else:
-            self._post(ShowEnv(env_id), ShowAnswered)
+            runner.post(ShowEnv(env_id)).add_done_callback(
+                lambda f: f.exception() is None and self._events.put(WorldChanged(f.result(), forced=True)))
 
     def close(self) -> None:
         """The tab went: stop listening to the runner and end the UI thread."""
@@ -234,8 +234,8 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         """Apply one event to the view (the reducer); True when the shown step must be redrawn."""
         v = self.view
         match event:
-            case WorldChanged(shown, forced):
-                if forced or shown.origin == self.origin:  # another tab's world is its own business
+            case WorldChanged(shown, forced):  # not another tab's; a new tab's first unless it shows one already
+                if (forced and v.episode is None and self.world_shown is None) or shown.origin == self.origin:
                     self._show_world(shown)
                 return False
             case EpisodeStarted(episode, opened):
