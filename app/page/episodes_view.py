@@ -24,6 +24,7 @@ import logging
 import threading
 import time
 import traceback
+import uuid
 from datetime import datetime
 from pathlib import Path
 from urllib.parse import parse_qs
@@ -53,14 +54,23 @@ LIST_STYLE = ("<div class='gsmn-episode-list' style='display:none'></div><style>
               "</style>")
 
 # the script that tells the server this tab's URL: it finds the hidden field, hides its row, and types
-# location.search into it (with the time, so the same link opened twice is two updates)
-READ_LINK = ("<img src='data:,' alt='' style='display:none' onerror=\"var f=function(n){var l=[].slice.call("
+# location.search into it (with the time, so the same link opened twice is two updates); once per tab's page
+# (`read_link_html`), though viser mounts the element again when the controls are reordered (presenter mode)
+READ_LINK = ("<img src='data:,' alt='' style='display:none' onerror=\"var d=window.gsmnLinkRead=window.gsmnLinkRead"
+             "||{};if(d['__ONCE__'])return;d['__ONCE__']=1;var f=function(n){var l=[].slice.call("
              "document.querySelectorAll('label')).find(function(x){return x.textContent.trim()=='" + LINK_FIELD +
              "'});if(!l){if(n<100)setTimeout(function(){f(n+1)},200);return;}var row=l.closest('.mantine-Flex-root')"
              "||l.parentElement;row.style.display='none';var i=row.querySelector('input');var set=Object."
              "getOwnPropertyDescriptor(HTMLInputElement.prototype,'value').set;set.call(i,location.search+'#'+"
              "Date.now());i.dispatchEvent(new Event('input',{bubbles:true}));i.dispatchEvent(new Event('change',"
              "{bubbles:true}));i.blur();};f(0);\">")
+
+
+def read_link_html() -> str:
+    """The link reader for one tab's page: its script sends the page's URL once, under a token of its own, so that
+    viser mounting the element again (a reordered control panel) does not apply the link again (which turned
+    presenter mode back on as it was turned off), while the page of a new tab (a reconnection) reads it anew."""
+    return READ_LINK.replace("__ONCE__", uuid.uuid4().hex)
 
 
 def link_query(episode_id: int, step: int, layers: list[str], presenter: bool = False) -> str:
@@ -204,7 +214,7 @@ class EpisodesView(RunnerListener):
     def _build(self) -> None:
         gui = self.client.gui
         self.link_field = gui.add_text(LINK_FIELD, "")
-        self.link_reader = gui.add_html(READ_LINK)
+        self.link_reader = gui.add_html(read_link_html())
         self.link_field.on_update(self._on_link)
         after = getattr(self.viewer, "result", None)  # right under the result, above the counterfactual
         with gui.add_folder("Share this step", order=after.order + 0.01 if after is not None else None):
