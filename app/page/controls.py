@@ -37,6 +37,7 @@ from app.page.events import (
     WatchSet,
     WhatIf,
 )
+from app.render.colors import paths_legend_html
 from app.render.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, map_title
 from app.render.panels import (
     ACTIONS_AXES,
@@ -61,6 +62,8 @@ SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 step
 FOLLOW_LABEL = "Follow the live step"
 WATCH_LABEL = "Show episodes started elsewhere"
 ENV_TYPED_WAIT = 0.6  # s without a keystroke before a typed environment id shows its world
+# the Semantic map box's readings (app.render.layers.SEMANTIC_READINGS): presenter mode chooses the second
+SEMANTIC_READINGS = {"all 63 landmark classes": "all", "this world's landmarks": "world"}
 SHARED_NOTE = ("<small>This tab has its own timeline, episode, counterfactual and layers. **Shared by every tab:** "
                "the one simulator (one episode flies at a time: Run, Pause, Step, Stop and Speed act on it for "
                "everyone) and the jobs.</small>")
@@ -160,7 +163,12 @@ class ViewerControls:
                                                hint="probability: the model's auxiliary heads; raw: channel 0")
             self.range_mode = gui.add_dropdown("Colour range", RANGE_MODES, initial_value="fixed",
                                                hint="fixed: 0 to 1 for probabilities; frame: each frame's min to max")
+            self.semantic_reading = gui.add_dropdown(
+                "Semantic map reads", tuple(SEMANTIC_READINGS), initial_value="all 63 landmark classes",
+                hint="all 63 classes the head knows (open ground reads as any of them), or only this world's "
+                     "landmarks and 'nothing': the likeliest of those per cell")
             self.show_task = gui.add_checkbox("Goal, success region, paths", True)
+            self.paths_legend = gui.add_html(paths_legend_html())
 
     def _connect_controls(self) -> None:
         """What each control does when a person uses it (viser's thread pool)."""
@@ -181,7 +189,7 @@ class ViewerControls:
         self.whatif_buttons.on_click(self._on_whatif)
         for box in self.layer_boxes.values():
             box.on_update(lambda _: self._events.put(OptionsChanged()))
-        for control in (self.opacity, self.value_mode, self.range_mode):
+        for control in (self.opacity, self.value_mode, self.range_mode, self.semantic_reading):
             control.on_update(lambda _: self._events.put(OptionsChanged()))
         self.show_task.on_update(lambda _: self._events.put(TaskVisibility()))
 

@@ -18,6 +18,7 @@ from app.live.commands import (
     Grounding,
 )
 from app.live.recording import Episode, StepRecord
+from app.page.controls import SEMANTIC_READINGS
 from app.page.events import (
     Grounded,
 )
@@ -131,7 +132,8 @@ class ViewerDrawing:
                 maps = {**maps, "relevance_map_w": grounding.relevance_w, "goal_map_w": grounding.goal_w,
                         "goal_map_r": grounding.goal_r}
             layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value,
-                                tuple(lm.noun_phrase for lm in episode.task.world.landmarks))
+                                tuple(lm.noun_phrase for lm in episode.task.world.landmarks),
+                                SEMANTIC_READINGS[self.semantic_reading.value])
         positions = self.compare.own_path(episode, np.array([s.position for s in episode.steps[: t + 1]]))
         opacity = float(self.opacity.value)
         with self.client.atomic():

@@ -1,10 +1,12 @@
 """The 3D scene (viser): the world with the simulator's own meshes, the task (demonstration path, goal, the
 success region with its correct quadrant), the drone with its camera frustum showing the live image, the
-flown path, and the model's maps as images on the ground.
+flown path, and the model's maps as images on the ground. In presenter mode a yellow ring and a "drone" label mark
+the drone, so that an audience finds it on the field.
 
 Frames: world x east, y north, z up (docs/design.md). Maps are north-up pictures (row 0 at y = 30), placed on
 the field by a half-turn about x, since viser draws an image's row 0 towards local -y. Colours follow the
-paper's figures: demonstration red, policy blue, success quadrant green; the counterfactual's goal is gold.
+paper's figures: demonstration red, policy blue, success quadrant green; the counterfactual's goal is gold
+(`app.render.colors`, which has their legend).
 """
 
 from __future__ import annotations
@@ -14,15 +16,22 @@ import math
 import numpy as np
 import viser
 
-from app.render.colors import decode_image, png_bytes, upscale, with_alpha
+from app.render.colors import (
+    COUNTERFACTUAL_RGB,
+    DEMO_RGB,
+    DRONE_MARK_RGB,
+    POLICY_RGB,
+    QUADRANT_RGB,
+    decode_image,
+    png_bytes,
+    upscale,
+    with_alpha,
+)
 from gsmn.task.instructions import Instruction
 from gsmn.world.assets import AssetModel
 from gsmn.world.spec import WorldSpec
 
-DEMO_RGB = (220, 40, 40)
-POLICY_RGB = (40, 110, 245)
-QUADRANT_RGB = (60, 200, 90)
-COUNTERFACTUAL_RGB = (245, 190, 30)
+DRONE_MARK_RADIUS = 1.2  # m, presenter mode's ring around the drone (its body is 0.5 m long)
 MAP_UPSCALE = 8  # 32 x 32 cells -> 256 x 256 pixels: sharp cells despite the texture's linear filtering
 LAYER_HEIGHTS = {"semantic": 0.03, "relevance": 0.05, "goal": 0.07}  # any other layer: just below the semantic map
 OTHER_LAYER_HEIGHT = 0.02
@@ -119,6 +128,42 @@ def label_box(point: tuple[float, float, float], text: str, camera: dict = DEFAU
     u, v = focal * (d @ right) / depth, focal * (d @ down) / depth
     w = LABEL_PX["char"] * len(text) + LABEL_PX["pad"]
     return u - w / 2, v - LABEL_PX["height"], u + w / 2, v
+
+
+def in_view(point: tuple[float, float, float], camera: dict, aspect: float, margin: float = 1.0) -> bool:
+    """Whether a world point lies inside `margin` of the view from `camera` (viser's vertical field of view) on a
+    canvas `aspect` wide per unit of height."""
+    eye, target, up = (np.asarray(camera[k], dtype=float) for k in ("position", "look_at", "up"))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    d = np.asarray(point, dtype=float) - eye
+    depth = d @ forward
+    half = math.tan(camera["fov"] / 2) * margin
+    return bool(depth > 0 and abs(d @ down) <= half * depth and abs(d @ right) <= half * aspect * depth)
+
+
+def framing_camera(aspect: float, field_size: float = 30.0, margin: float = 0.9, top: float = 4.0) -> dict:
+    """The first camera's view brought as close as the field allows on a canvas `aspect` wide per unit of height:
+    the same direction, the nearest distance (to 1 %) at which the field's corners, and points `top` m above
+    them, stay within `margin` of the view. Presenter mode's 3D view, wider than the page's, so fills with the
+    field rather than with sky."""
+    target = np.asarray(DEFAULT_CAMERA["look_at"], dtype=float)
+    away = np.asarray(DEFAULT_CAMERA["position"], dtype=float) - target
+    corners = [(x, y, z) for x in (0.0, field_size) for y in (0.0, field_size) for z in (0.0, top)]
+
+    def camera(scale: float) -> dict:
+        return {**DEFAULT_CAMERA, "position": tuple((target + scale * away).tolist())}
+
+    near, far = 0.2, 3.0  # fractions of the first camera's distance; far always fits (the corners are in view)
+    while far - near > 0.01:
+        mid = (near + far) / 2
+        if all(in_view(c, camera(mid), aspect, margin) for c in corners):
+            far = mid
+        else:
+            near = mid
+    return camera(far)
 
 
 def boxes_overlap(a: tuple[float, float, float, float] | None, b: tuple[float, float, float, float] | None) -> bool:
@@ -218,6 +263,8 @@ class SceneView:
         self.world: WorldSpec | None = None
         self.show_task = True
         self.generation = 0  # of the landmarks drawn (`draw_world`)
+        self.drone_marked = False  # presenter mode: a ring and a label on the drone
+        self.mark: viser.FrameHandle | None = None
 
     def draw_world(self, world: WorldSpec, on_ground_click=None, on_landmark_click=None) -> None:
         """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field,
@@ -327,6 +374,7 @@ class SceneView:
                 image=image, format="jpeg", wxyz=wxyz, position=cam_position, color=(240, 120, 30))
             self.body = self.scene.add_box("/drone/body", color=(30, 30, 34), dimensions=(0.5, 0.36, 0.1),
                                            wxyz=yaw_wxyz(yaw), position=position)
+            self._add_mark(position)
             return
         self.frustum.wxyz, self.frustum.position = wxyz, cam_position
         if jpeg is not None:
@@ -334,6 +382,26 @@ class SceneView:
         elif image is not None:
             self.frustum.image = image
         self.body.wxyz, self.body.position = yaw_wxyz(yaw), position
+        if self.mark is not None:
+            self.mark.position = position
+
+    def _add_mark(self, position: tuple[float, float, float]) -> None:
+        """The drone's mark: a yellow ring around it, as wide on the screen at any distance, and a "drone" label
+        above it; shown while `drone_marked`."""
+        self.mark = self.scene.add_frame("/drone/mark", show_axes=False, position=position,
+                                         visible=self.drone_marked)
+        t = np.linspace(0.0, 2 * math.pi, 33)
+        ring = np.column_stack([DRONE_MARK_RADIUS * np.cos(t), DRONE_MARK_RADIUS * np.sin(t), np.zeros_like(t)])
+        self.scene.add_line_segments("/drone/mark/ring", _segments(ring), DRONE_MARK_RGB, thickness=5.0,
+                                     thickness_units="screen")
+        self.scene.add_label("/drone/mark/label", "drone", position=(0.0, 0.0, 0.9), anchor="bottom-center",
+                             font_screen_scale=1.3)
+
+    def mark_drone(self, on: bool) -> None:
+        """Show or hide the drone's ring and label (presenter mode); remembered for a drone drawn later."""
+        self.drone_marked = on
+        if self.mark is not None and _has(self.scene, "/drone/mark"):
+            self.mark.visible = on
 
     def set_path(self, positions: np.ndarray) -> None:
         """The flown path (N, 3); fewer than two points clears it."""

@@ -1,5 +1,6 @@
 """Colours for the model's maps: colormaps with their range, the semantic map as "most likely landmark per
-cell" with a legend, crisp nearest-neighbour upscaling and PNG encoding.
+cell" with a legend (over every class the head knows, or over this world's landmarks and "nothing"), the colours
+of the 3D view's paths and markers with their legend, crisp nearest-neighbour upscaling and PNG encoding.
 
 Pure numpy and Pillow, no torch and no viser, so it is cheap to test. Maps arrive north-up (row 0 is the
 north edge of the field, see docs/model.md) and stay that way: images are drawn as they are stored.
@@ -28,6 +29,17 @@ COLORMAPS = {"viridis": _VIRIDIS, "diverging": _DIVERGING}
 
 UNSEEN_RGB = (96, 96, 104)  # cells the camera has never covered: dark grey, with its swatch in the legend
 OTHER_RGB = (236, 228, 210)  # cells read as a landmark class this world does not have (the head has no "ground")
+NOTHING = "nothing"  # the world reading's entry for "none of this world's landmarks": drawn in OTHER_RGB
+# The 3D view's colours (app.page.scene), after the paper's figures, and what each means in plain words
+# (`paths_legend_html`): demonstration red, the flight blue, the correct side green, a what-if gold.
+DEMO_RGB = (220, 40, 40)
+POLICY_RGB = (40, 110, 245)
+QUADRANT_RGB = (60, 200, 90)
+COUNTERFACTUAL_RGB = (245, 190, 30)
+DRONE_MARK_RGB = (255, 214, 0)  # presenter mode's ring around the drone
+PATHS_LEGEND = ((POLICY_RGB, "blue line: the path the drone flew"),
+                (DEMO_RGB, "red line: the demonstration path to the goal (red post)"),
+                (QUADRANT_RGB, "green wedge: the side to stop on"))
 
 
 def _lut(name: str) -> np.ndarray:
@@ -125,10 +137,10 @@ def class_palette(n: int) -> np.ndarray:
     return out
 
 
-def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def class_probabilities(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """The perception head on every cell: semantic map (C, H, W), head Linear(C -> K) as weight (K, C) and bias (K,)
-    -> (most likely class (H, W) int, its probability (H, W), observed (H, W) bool).
+    -> (P(class) (K, H*W), observed (H*W,) bool).
 
     A cell the camera never covered holds exactly zero in every channel (the map starts at zero and only the
     covered cells are blended), so those are marked unobserved rather than given a meaningless class."""
@@ -136,10 +148,37 @@ def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndar
     features = semantic_map.reshape(C, H * W).astype(np.float32)
     # einsum, not @: numpy's threaded BLAS spins for ~16 ms on this tiny product when the cores are busy
     logits = np.einsum("kc,cn->kn", weight.astype(np.float32), features) + bias.astype(np.float32)[:, None]
-    probs = softmax(logits, axis=0)  # (K, H*W)
-    best = probs.argmax(0)
-    observed = np.abs(features).max(0) > 1e-6
-    return best.reshape(H, W), probs.max(0).reshape(H, W), observed.reshape(H, W)
+    return softmax(logits, axis=0), np.abs(features).max(0) > 1e-6
+
+
+def semantic_classes(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The perception head's most likely class per cell: -> (class (H, W) int, its probability (H, W), observed
+    (H, W) bool); see `class_probabilities`."""
+    H, W = semantic_map.shape[1:]
+    probs, observed = class_probabilities(semantic_map, weight, bias)
+    return probs.argmax(0).reshape(H, W), probs.max(0).reshape(H, W), observed.reshape(H, W)
+
+
+def world_reading(semantic_map: np.ndarray, weight: np.ndarray, bias: np.ndarray, names, world_names
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The perception head read as "which of this world's landmarks, or nothing": per cell, P(name) for each name
+    of the sorted `world_names` (the classes of that name, `names` per class, summed) and P(nothing) = the rest
+    (every class this world does not have), and the likeliest of those. -> (index (H, W) int into the sorted names,
+    -1 for nothing; its probability (H, W); observed (H, W) bool).
+
+    The head has no "open ground" class (it is trained at landmark cells only), so on open ground its argmax over
+    all 63 classes names landmarks that are not there; here those cells read "nothing" unless one of this world's
+    landmarks is likelier than all the absent ones together."""
+    H, W = semantic_map.shape[1:]
+    probs, observed = class_probabilities(semantic_map, weight, bias)
+    order = sorted(set(world_names))
+    member = np.array([[name == n for name in names] for n in order], np.float32).reshape(len(order), len(names))
+    p_names = np.einsum("wk,kn->wn", member, probs)  # (n, H*W)
+    p = np.vstack([p_names, 1.0 - p_names.sum(0, keepdims=True)])  # the last row: nothing
+    best = p.argmax(0)
+    index = np.where(best == len(order), -1, best)
+    return index.reshape(H, W), p.max(0).reshape(H, W), observed.reshape(H, W)
 
 
 def semantic_rgb(classes: np.ndarray, confidence: np.ndarray, observed: np.ndarray, palette: np.ndarray,
@@ -194,20 +233,43 @@ def semantic_legend_html(classes: np.ndarray, observed: np.ndarray, palette: np.
         shares[name] = shares.get(name, 0.0) + float((seen == k).sum()) / total
         colours.setdefault(name, OTHER_RGB if k < 0 else tuple(int(c) for c in palette[k]))
     order = sorted(shares, key=lambda name: -shares[name])[:top]
+    return _legend([swatch_html(colours[name], f"{name} {100 * shares[name]:.0f}%") for name in order], observed)
 
-    def swatch(rgb, label: str) -> str:
-        r, g, b = rgb
-        return (f'<span style="white-space:nowrap;margin-right:6px"><span style="display:inline-block;width:9px;'
-                f'height:9px;border-radius:2px;background:rgb({r},{g},{b});margin-right:3px;'
-                f'box-shadow:inset 0 0 0 1px rgba(0,0,0,.15)"></span>{html.escape(label)}</span>')
 
-    items = [swatch(colours[name], f"{name} {100 * shares[name]:.0f}%") for name in order]
+def world_legend_html(index: np.ndarray, observed: np.ndarray, palette: np.ndarray, names: list[str]) -> str:
+    """The legend of `world_reading`: every one of this world's landmarks (`names`, sorted, as the index counts
+    them) in that order, whether or not any cell reads it, then "nothing", each with its share of the observed
+    cells, so the entries stay in place from step to step."""
+    seen = index[observed].ravel()
+    total = max(int(seen.size), 1)
+    items = [swatch_html(tuple(int(c) for c in palette[k]), f"{name} {100 * (seen == k).sum() / total:.0f}%")
+             for k, name in enumerate(names)]
+    items.append(swatch_html(OTHER_RGB, f"{NOTHING} (none of these) {100 * (seen < 0).sum() / total:.0f}%"))
+    return _legend(items if seen.size else [], observed)
+
+
+def swatch_html(rgb, label: str) -> str:
+    """One legend entry: a small square of the colour, then its label."""
+    r, g, b = rgb
+    return (f'<span style="white-space:nowrap;margin-right:6px"><span style="display:inline-block;width:9px;'
+            f'height:9px;border-radius:2px;background:rgb({r},{g},{b});margin-right:3px;'
+            f'box-shadow:inset 0 0 0 1px rgba(0,0,0,.15)"></span>{html.escape(label)}</span>')
+
+
+def _legend(items: list[str], observed: np.ndarray) -> str:
+    """A semantic legend's entries, and the grey of the cells not seen yet when there are some."""
     if not items:
         return '<div class="gsmn-legend" style="font-size:11px;opacity:.75">nothing observed yet</div>'
     unseen = (~observed).mean()
     if unseen > 0:
-        items.append(swatch(UNSEEN_RGB, f"not seen yet {100 * unseen:.0f}% of the map"))
+        items.append(swatch_html(UNSEEN_RGB, f"not seen yet {100 * unseen:.0f}% of the map"))
     return f'<div class="gsmn-legend" style="font-size:11px;line-height:1.5">{"".join(items)}</div>'
+
+
+def paths_legend_html() -> str:
+    """What the 3D view's lines and wedge mean, in plain words."""
+    items = "".join(swatch_html(rgb, label) for rgb, label in PATHS_LEGEND)
+    return f'<div class="gsmn-paths-legend" style="font-size:11px;line-height:1.5">In the 3D view: {items}</div>'
 
 
 def upscale(image: np.ndarray, factor: int) -> np.ndarray:

@@ -10,6 +10,10 @@ panel: the camera, the maps labelled in plain words, the flown path, the actions
 Every frame of a GIF or MP4 is one step: the camera image, the semantic, relevance and goal maps, and a caption
 with the step, the instruction and the result. `gsmn export` (app.cli) and `GET /api/episodes/{id}/export` both
 call `export_episode`.
+
+The semantic map is read as "which of this world's landmarks, or nothing" (`app.render.layers`, reading "world"),
+with its legend: a person who did not see the dashboard reads the few landmarks the world has, not a mosaic of the
+63 classes the head knows.
 """
 
 from __future__ import annotations
@@ -25,14 +29,14 @@ from PIL import Image, ImageDraw, ImageFont
 
 from app.live.models import MapHeads
 from app.live.recording import FINISHED, Episode
-from app.render.colors import decode_image, png_bytes, upscale
+from app.render.colors import NOTHING, OTHER_RGB, UNSEEN_RGB, decode_image, name_palette, png_bytes, upscale
 from app.render.layers import map_layers
 
 FORMATS = ("html", "gif", "mp4")
 MEDIA_TYPES = {"html": "text/html; charset=utf-8", "gif": "image/gif", "mp4": "video/mp4"}
 STEPS_PER_SECOND = 5  # the simulator's rate: an export plays in real time
 # the maps in plain words (the presenter's labels too): what each panel shows, for someone who does not read code
-PLAIN_TITLES = {"semantic": "What it has mapped (most likely landmark per cell)",
+PLAIN_TITLES = {"semantic": "What it has mapped: which of this world's landmarks, or nothing",
                 "relevance": "Where it thinks the named landmark is",
                 "goal": "Where it thinks the goal is"}
 SHOWN = tuple(PLAIN_TITLES)
@@ -66,18 +70,34 @@ def result_line(episode: Episode) -> str:
             f"goal, {r.final_side} side (asked {episode.task.instruction.side})")
 
 
-def step_layers(episode: Episode, t: int, heads: MapHeads | None, legends: dict | None = None
-                ) -> dict[str, np.ndarray]:
-    """The shown maps of step t as RGB images (one pixel per cell), north up; empty without maps. `legends`, when
-    given, gets each map's legend (HTML)."""
+def step_layers(episode: Episode, t: int, heads: MapHeads | None, legends: dict | None = None,
+                semantic_reading: str = "world") -> dict[str, np.ndarray]:
+    """The shown maps of step t as RGB images (one pixel per cell), north up; empty without maps. The semantic map
+    is read over this world's landmarks and nothing unless `semantic_reading` is "all". `legends`, when given,
+    gets each map's legend (HTML)."""
     record = episode.steps[t]
     if record.maps is None or heads is None:
         return {}
-    names = tuple(lm.noun_phrase for lm in episode.task.world.landmarks)  # the legend lists this world's only
-    layers = map_layers(record.maps.maps, heads, world_names=names)
+    names = world_names(episode)  # the legend lists this world's only
+    layers = map_layers(record.maps.maps, heads, world_names=names, semantic_reading=semantic_reading)
     if legends is not None:
         legends.update({name: layers[name].legend_html for name in SHOWN if name in layers})
     return {name: layers[name].rgb for name in SHOWN if name in layers}
+
+
+def world_names(episode: Episode) -> tuple[str, ...]:
+    return tuple(lm.noun_phrase for lm in episode.task.world.landmarks)
+
+
+def semantic_key(episode: Episode, heads: MapHeads | None) -> list[tuple[str, tuple[int, int, int]]]:
+    """The semantic map's colours in an export, as (label, colour): this world's landmarks (sorted), nothing, and
+    the grey of cells not seen yet; empty when no trained perception head reads the map."""
+    if heads is None or not heads.perception_trained:
+        return []
+    names = sorted(set(world_names(episode)))
+    palette = name_palette(heads.class_names, names)
+    return ([(name, tuple(int(c) for c in palette[k])) for k, name in enumerate(names)]
+            + [(NOTHING, OTHER_RGB), ("not seen yet", UNSEEN_RGB)])
 
 
 def export_episode(episode: Episode, fmt: str, heads: MapHeads | None, config=None) -> bytes:
@@ -106,7 +126,8 @@ def frame_image(episode: Episode, t: int, heads: MapHeads | None, map_px: int = 
     camera = Image.fromarray(decode_image(record.camera_jpeg))
     camera = camera.resize((round(camera.width * map_px / camera.height), map_px), Image.BILINEAR)
     maps = step_layers(episode, t, heads)
-    title_h, caption_h, gap = 22, 58, 8
+    key = semantic_key(episode, heads) if "semantic" in maps else []
+    title_h, caption_h, gap = 22, 58 + (22 if key else 0), 8
     width = gap + camera.width + gap + len(maps) * (map_px + gap)
     canvas = Image.new("RGB", (max(width, 640), title_h + map_px + caption_h), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
@@ -129,7 +150,24 @@ def frame_image(episode: Episode, t: int, heads: MapHeads | None, map_px: int = 
     r = episode.result
     colour = (30, 132, 73) if r is not None and r.success else (192, 57, 43) if r is not None else (90, 90, 90)
     draw.text((gap, y + 26), result_line(episode), fill=colour, font=small)
+    _draw_key(draw, key, gap, y + 48, canvas.width - gap, small)
     return np.asarray(canvas)
+
+
+def _draw_key(draw: ImageDraw.ImageDraw, key: list, x: int, y: int, right: int, font) -> None:
+    """The semantic map's legend in one line: "What it has mapped:", then a swatch and a name per colour (those
+    that do not fit before `right` are left out)."""
+    if not key:
+        return
+    draw.text((x, y), "What it has mapped:", fill=(20, 20, 20), font=font)
+    x += round(draw.textlength("What it has mapped:", font=font)) + 8
+    for label, rgb in key:
+        width = 14 + round(draw.textlength(label, font=font)) + 12
+        if x + width > right:
+            break
+        draw.rectangle((x, y + 3, x + 10, y + 13), fill=rgb, outline=(150, 150, 150))
+        draw.text((x + 14, y), label, fill=(20, 20, 20), font=font)
+        x += width
 
 
 def gif_bytes(frames: list[np.ndarray]) -> bytes:
@@ -166,10 +204,12 @@ def export_html(episode: Episode, heads: MapHeads | None, config=None) -> str:
     world = episode.task.world
     steps = []
     for t, s in enumerate(episode.steps):
+        legends: dict[str, str] = {}
         maps = {name: _b64(png_bytes(upscale(rgb, max(1, 160 // rgb.shape[0]))))
-                for name, rgb in step_layers(episode, t, heads).items()}
+                for name, rgb in step_layers(episode, t, heads, legends).items()}
         p = s.decisive_stop_probability
-        steps.append({"camera": _b64(s.camera_jpeg), "maps": maps, "x": round(s.position[0], 3),
+        steps.append({"camera": _b64(s.camera_jpeg), "maps": maps, "legend": legends.get("semantic", ""),
+                      "x": round(s.position[0], 3),
                       "y": round(s.position[1], 3), "v": round(s.v, 3), "omega": round(s.omega, 3),
                       "stop_p": None if p is None else round(p, 3), "stop": s.stop})
     i = episode.task.instruction
@@ -194,6 +234,7 @@ body{font-family:system-ui,sans-serif;margin:16px;color:#1a1a1a;background:#fafa
 h1{font-size:22px;margin:0 0 4px} .result{font-size:17px;font-weight:600;margin:4px 0 12px}
 .ok{color:#1e8449} .bad{color:#c0392b} .row{display:flex;flex-wrap:wrap;gap:14px;align-items:flex-start}
 figure{margin:0} figcaption{font-size:13px;font-weight:600;margin-bottom:3px;max-width:200px}
+figure .gsmn-legend{max-width:200px;margin-top:3px}
 img.map{width:200px;height:200px;image-rendering:pixelated;border-radius:3px}
 img.cam{height:200px;border-radius:3px} canvas{background:#e9f0dc;border-radius:3px}
 .controls{margin:14px 0;display:flex;gap:10px;align-items:center;font-size:15px}
@@ -205,7 +246,8 @@ input[type=range]{width:min(640px,60vw)} button{font-size:15px;padding:4px 14px}
 <input id="slider" type="range" min="0" value="0" step="1"><span id="stepLabel"></span></div>
 <div class="row">
 <figure><figcaption>What the drone sees</figcaption><img id="camera" class="cam" alt="camera"></figure>
-<figure><figcaption>Where it has flown (blue), the goal (red)</figcaption>
+<figure><figcaption>Seen from above: the path flown (blue), the demonstration path (red dashes) to
+the goal (red dot)</figcaption>
 <canvas id="top" width="200" height="200"></canvas></figure>
 <div id="maps" class="row"></div></div>
 <p id="readout" class="readout"></p>
@@ -225,6 +267,13 @@ for (const name of Object.keys(D.titles)) {
   fig.innerHTML = `<figcaption>${D.titles[name]}</figcaption>`;
   const img = document.createElement("img"); img.className = "map"; img.dataset.layer = name;
   fig.appendChild(img); $("maps").appendChild(fig); mapImgs[name] = img;
+  if (name === "semantic") { const key = document.createElement("div"); key.id = "legend"; fig.appendChild(key); }
+}
+// a landmark's name beside its dot, turned to the dot's left or below it where it would leave the canvas
+function labelAt(g, text, x, y, width, height) {
+  const w = g.measureText(text).width;
+  const left = x + 4 + w <= width - 1 ? x + 4 : Math.max(1, x - 4 - w);
+  return [left, y - 3 - 8 >= 0 ? y - 3 : Math.min(height - 2, y + 12)];
 }
 function drawTop(t) {
   const c = $("top"), g = c.getContext("2d"), k = c.width / D.field;
@@ -232,7 +281,8 @@ function drawTop(t) {
   g.clearRect(0, 0, c.width, c.height);
   g.fillStyle = "#555"; g.font = "10px sans-serif";
   for (const l of D.landmarks) {
-    g.beginPath(); g.arc(X(l.x), Y(l.y), 3, 0, 7); g.fill(); g.fillText(l.name, X(l.x) + 4, Y(l.y) - 3);
+    g.beginPath(); g.arc(X(l.x), Y(l.y), 3, 0, 7); g.fill();
+    const [tx, ty] = labelAt(g, l.name, X(l.x), Y(l.y), c.width, c.height); g.fillText(l.name, tx, ty);
   }
   g.strokeStyle = "#d03030"; g.setLineDash([4, 3]); g.beginPath();
   D.path.forEach((p, i) => i ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))); g.stroke(); g.setLineDash([]);
@@ -247,6 +297,7 @@ function show(t) {
   slider.value = t; $("camera").src = "data:image/jpeg;base64," + s.camera;
   for (const [name, img] of Object.entries(mapImgs))
     img.src = s.maps[name] ? "data:image/png;base64," + s.maps[name] : "";
+  if ($("legend")) $("legend").innerHTML = s.legend;
   $("stepLabel").textContent = `Step ${t} of ${D.steps.length - 1}`;
   $("readout").textContent = `Flying ${s.v.toFixed(2)} m/s, turning ${s.omega.toFixed(2)} rad/s` +
     (s.stop_p === null ? "" : `, P(stop) ${s.stop_p.toFixed(2)}`) + (s.stop ? ": STOP" : "");

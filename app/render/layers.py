@@ -1,8 +1,11 @@
 """The model's maps as layers a person can read (paper: Model Architecture; docs/model.md for the maps).
 
-- semantic: the perception head (semantic-map cell -> 63 landmark classes) on every cell, drawn as the most
-  likely landmark of this world with a legend (one entry per name); pale where the head reads a landmark this world
-  does not have (it has no "open ground" class), grey where the camera has not looked yet.
+- semantic: the perception head (semantic-map cell -> 63 landmark classes) on every cell, read one of two ways
+  (`SEMANTIC_READINGS`). "all": the most likely of all 63 classes, drawn in this world's landmark colours with a
+  legend (one entry per name), pale where the head reads a landmark this world does not have (it has no "open
+  ground" class, so open ground reads as any of them: a mosaic). "world": the most likely of this world's
+  landmarks or "nothing" (the rest of the classes together), pale for nothing, with every one of this world's
+  landmarks in the legend; presenter mode and the exports read it so. Grey where the camera has not looked yet.
 - relevance: P(the cell holds the landmark the instruction names), the grounding head Linear(3 -> 2) on the
   relevance map; cells never observed are left transparent on the ground.
 - goal: P(the cell is the goal), the goal head Linear(2 -> 2) on the world-frame goal map.
@@ -44,6 +47,8 @@ from app.render.colors import (
     semantic_legend_html,
     semantic_rgb,
     world_classes,
+    world_legend_html,
+    world_reading,
 )
 from gsmn.attribution import cell_centre
 from gsmn.model.grid import world_cell
@@ -56,11 +61,14 @@ READ_MAPS = {"semantic_map_w": "semantic", "relevance_map_w": "relevance", "goal
              "goal_map_r": "goal_robot"}
 RECORD_MAPS = tuple(f.name for f in fields(GSMNOutputs) if f.name[-2:] in ("_c", "_w", "_r"))  # as .maps() names
 LAYERS = (*READ_MAPS.values(), *(m for m in RECORD_MAPS if m not in READ_MAPS and m not in NOT_KEPT))
-TITLES = {"semantic": "Semantic map: most likely landmark", "relevance": "Relevance: P(named landmark)",
+TITLES = {"semantic": "Semantic map: most likely landmark", "semantic_world": "Semantic map: which of this world's "
+          "landmarks, or nothing", "relevance": "Relevance: P(named landmark)",
           "goal": "Goal: P(goal)", "goal_robot": "Goal, drone's frame (steers it)"}
 FRAMES = {"_w": "world", "_r": "robot", "_c": "camera"}
 VALUE_MODES = ("probability", "raw")
 RANGE_MODES = ("fixed", "frame")
+SEMANTIC_READINGS = ("all", "world")  # the semantic map over all 63 classes, or this world's landmarks and nothing
+NOTHING_ALPHA = 0.3  # on the ground, a cell read "nothing" lets the field show through (landmarks stand out)
 NO_GOAL_HEAD = "channel 0 (no J_plan)"
 NO_GROUNDING_HEAD = "each scaled to its range over seen cells (no J_ground, so no P(named))"
 NO_PERCEPTION_HEAD = ("principal components over this frame's seen cells, on one scale; like colours, like "
@@ -120,9 +128,18 @@ def _channels_layer(name: str, maps: np.ndarray, observed: np.ndarray, label: st
                  channels_legend_html(label, min(3, len(maps)), channel, start))
 
 
-def _semantic_layer(semantic_w: np.ndarray, heads: MapHeads, world_names: tuple[str, ...] | None
-                    ) -> tuple[Layer, np.ndarray]:
-    """The semantic layer, and which cells the camera has seen."""
+def _semantic_layer(semantic_w: np.ndarray, heads: MapHeads, world_names: tuple[str, ...] | None,
+                    reading: str = "all") -> tuple[Layer, np.ndarray]:
+    """The semantic layer read over all classes or this world's (`SEMANTIC_READINGS`; "world" needs
+    `world_names`), and which cells the camera has seen."""
+    if heads.perception_trained and reading == "world" and world_names:
+        names = sorted(set(world_names))
+        index, p, observed = world_reading(semantic_w, heads.perception_w, heads.perception_b, heads.class_names,
+                                           names)
+        palette = name_palette(heads.class_names, names)
+        alpha = observed * np.where(index < 0, NOTHING_ALPHA, 1.0).astype(np.float32)  # the field shows through
+        return Layer("semantic", TITLES["semantic_world"], semantic_rgb(index, p, observed, palette, len(names) + 1),
+                     alpha, world_legend_html(index, observed, palette, names), p), observed
     classes, confidence, observed = semantic_classes(semantic_w, heads.perception_w, heads.perception_b)
     if world_names:
         names = sorted(set(world_names))
@@ -144,15 +161,18 @@ def _semantic_layer(semantic_w: np.ndarray, heads: MapHeads, world_names: tuple[
 
 def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.ndarray, goal_r: np.ndarray,
                  heads: MapHeads, value_mode: str = "probability", range_mode: str = "fixed",
-                 world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
+                 world_names: tuple[str, ...] | None = None, semantic_reading: str = "all") -> dict[str, Layer]:
     """All four layers of one step (maps as stored: float16 or float32, channels first). With `world_names` (the
     world's landmark names) the semantic map colours and lists only those, one entry per name, and draws cells
-    read as another world's landmark in one pale colour (`app.render.colors.world_classes`)."""
+    read as another world's landmark in one pale colour (`app.render.colors.world_classes`); with
+    `semantic_reading` "world" too, it reads each cell as one of them or nothing (`app.render.colors.world_reading`)."""
     if value_mode not in VALUE_MODES:
         raise ValueError(f"value_mode must be one of {VALUE_MODES}, got {value_mode!r}")
     if range_mode not in RANGE_MODES:
         raise ValueError(f"range_mode must be one of {RANGE_MODES}, got {range_mode!r}")
-    semantic, observed = _semantic_layer(semantic_w, heads, world_names)
+    if semantic_reading not in SEMANTIC_READINGS:
+        raise ValueError(f"semantic_reading must be one of {SEMANTIC_READINGS}, got {semantic_reading!r}")
+    semantic, observed = _semantic_layer(semantic_w, heads, world_names, semantic_reading)
     relevance_title = goal_title = None
     if value_mode == "probability":
         if heads.grounding_trained:
@@ -193,10 +213,12 @@ def build_layers(semantic_w: np.ndarray, relevance_w: np.ndarray, goal_w: np.nda
 
 
 def map_layers(maps: dict[str, np.ndarray], heads: MapHeads, value_mode: str = "probability",
-               range_mode: str = "fixed", world_names: tuple[str, ...] | None = None) -> dict[str, Layer]:
+               range_mode: str = "fixed", world_names: tuple[str, ...] | None = None,
+               semantic_reading: str = "all") -> dict[str, Layer]:
     """A layer for each map of one step of the output record (`GSMNOutputs.maps()` names, channels first): the maps
     the heads read as `build_layers` shows them, then every other one as its channel 0 (this frame's range)."""
-    out = build_layers(*(maps[name] for name in READ_MAPS), heads, value_mode, range_mode, world_names)
+    out = build_layers(*(maps[name] for name in READ_MAPS), heads, value_mode, range_mode, world_names,
+                       semantic_reading)
     for name, m in maps.items():
         if name in READ_MAPS:
             continue
