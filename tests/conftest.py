@@ -2,7 +2,9 @@
 tests `pytest -m fast` runs); the fixtures many modules share: one untrained checkpoint per run, `gsmn serve`
 processes, and the training tests' expert stores."""
 
+import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -16,12 +18,47 @@ HEAVY = ("server", "browser", "training", "cluster", "slow")  # registered in py
 HEAVY_FIXTURES = {"gsmn_serve": "server"}
 
 
+# The modules run longest first, so that xdist's workers start the long modules early and finish on the many short
+# ones, instead of one long module running last while the other worker idles: their seconds in the last full run
+# (tests/durations.json, written by scripts/test_durations.py), a module not in it by the rough cost of its tests'
+# heaviest markers (seconds on two cores).
+DURATIONS = Path(__file__).with_name("durations.json")
+COST = {"training": 30.0, "cluster": 20.0, "browser": 20.0, "server": 8.0, "slow": 8.0}
+FAST_COST = 0.2
+
+
+def pytest_configure(config):
+    """Keep the order given below under `--dist loadfile`: xdist would otherwise reorder the files by their number of
+    tests, which sends the files of one or two long tests (the browser walk-throughs) last."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def cost(item) -> float:
+    return max((COST[name] for name in COST if item.get_closest_marker(name)), default=FAST_COST)
+
+
+def module_seconds(items) -> dict[str, float]:
+    estimate: dict[str, float] = {}
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        estimate[module] = estimate.get(module, 0.0) + cost(item)
+    try:
+        measured = json.loads(DURATIONS.read_text())
+    except (OSError, ValueError):
+        measured = {}
+    return {module: float(measured.get(module, seconds)) for module, seconds in estimate.items()}
+
+
 @pytest.hookimpl(tryfirst=True)  # before `-m` selects
 def pytest_collection_modifyitems(config, items):
-    """Mark `fast` every test that carries none of the heavy markers."""
+    """Mark `fast` every test that carries none of the heavy markers, and run the modules longest first
+    (module_seconds; the tests of a module stay together and in their order)."""
     for item in items:
         if not any(item.get_closest_marker(name) for name in HEAVY):
             item.add_marker(pytest.mark.fast)
+    seconds = module_seconds(items)
+    items.sort(key=lambda item: -seconds[item.nodeid.split("::")[0]])  # stable: a module's order kept
 
 
 @pytest.hookimpl(tryfirst=True)  # before its fixtures are set up
