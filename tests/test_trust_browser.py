@@ -8,6 +8,7 @@ Worlds here are ones no other browser test uses (174, 181, 192)."""
 from __future__ import annotations
 
 import browser_support
+import httpx
 import numpy as np
 import pytest
 
@@ -20,10 +21,20 @@ pytestmark = pytest.mark.browser
 HORIZON = 24
 
 
+def _first_person_checkpoint(folder):
+    from gsmn.config import preset
+    from gsmn.model import build_model, save_checkpoint
+    from gsmn.model.vocabulary import Vocabulary
+
+    config, vocabulary = preset("tiny"), Vocabulary.default()
+    save_checkpoint(folder, build_model("gs-fpv", config, vocabulary), config, vocabulary, {"note": "untrained"})
+
+
 @pytest.fixture(scope="module")
 def dashboard(tmp_path_factory, untrained_checkpoint):
     root = tmp_path_factory.mktemp("offered")
     make_untrained_checkpoint(root / "other", seed=3)  # a second checkpoint to compare with, offered by name
+    _first_person_checkpoint(root / "fpv")  # a first-person baseline: evaluated from the page, not flown live
     with browser_support.dashboard(tmp_path_factory, HORIZON, checkpoint=untrained_checkpoint,
                                    checkpoints_root=root, env_id=174) as d:
         yield d
@@ -98,3 +109,18 @@ def test_a_refused_run_says_which_episode_is_still_shown(dashboard, page):
     status = browser_support.poll(lambda: viewer.status.content, lambda s: "Not started" in s, "the refusal")
     assert f"Still shown: episode {shown.id}" in status
     assert not viewer.compare.note.content.startswith("Showing") or viewer.compare.partner_of(shown) is not None
+
+
+def test_a_first_person_baseline_is_offered_where_it_can_be_used_and_said_where_not(dashboard, page):
+    """Issue 77, item 11: GS-FPV, listed by GET /api/checkpoints, is in the Failures tab's evaluation menu and the
+    Fine-tune tab's; the live view's Policy menu leaves it out and its hint says why; the API says which fly live."""
+    viewer, jobs = dashboard.viewer, dashboard.jobs_view
+    assert not any("fpv" in o for o in viewer.policy.options)
+    assert "Not flown here: fpv" in viewer.policy.hint and "build no map" in viewer.policy.hint
+    assert "Model: fpv" in jobs.eval_checkpoint.options and "Model: fpv" in jobs.run_checkpoint.options
+    page.get_by_role("tab", name="Failures").click()
+    field(page, "Checkpoint").first.click()
+    assert page.get_by_role("option", name="Model: fpv", exact=True).count() == 1
+    page.keyboard.press("Escape")
+    listed = {c["name"]: c for c in httpx.get(f"{dashboard.urls.api}/api/checkpoints", timeout=30).json()}
+    assert listed["fpv"]["kind"] == "gs-fpv" and listed["fpv"]["live"] is False and listed["other"]["live"] is True

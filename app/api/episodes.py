@@ -18,6 +18,7 @@ from app.api.deps import COMMAND_TIMEOUT, MaybeKeeper, TheRunner, ViewerUrl, epi
 from app.api.models import EpisodeCreated, EpisodeId, EpisodeSummary, Policy, summary
 from app.api.schema import EnvId, Strict, Text, responses
 from app.live.commands import MAX_ENV_ID, CancelEpisode, StartEpisode
+from app.live.models import FIRST_PERSON_KINDS
 from app.render.truth import step_figures, went_wrong
 
 router = APIRouter()  # health, checkpoints, queue an episode
@@ -89,6 +90,9 @@ class CheckpointModel(BaseModel):
     error: str | None
     metrics: dict
     label: str = Field(description="a readable name, e.g. 'GSMN without J_ground (Table 2: 52.0 % on 300 dev)'")
+    live: bool = Field(True, description="whether it flies in the page's live view and POST /api/episodes: GSMN "
+                       "kinds do; the first-person baselines (gs-fpv, gs-fpv-mem) build no map to show and are "
+                       "evaluated (POST /api/evaluations) and fine-tuned (POST /api/runs) only")
 
 
 class Health(BaseModel):
@@ -110,7 +114,7 @@ def health(runner: TheRunner, viewer_url: ViewerUrl) -> Health:
 
 @router.get("/api/checkpoints", response_model=list[CheckpointModel], summary="Checkpoints the server can fly")
 def checkpoints(runner: TheRunner) -> list[CheckpointModel]:
-    return [CheckpointModel(**c.__dict__) for c in runner.checkpoint_list()]
+    return [CheckpointModel(**c.__dict__, live=c.kind not in FIRST_PERSON_KINDS) for c in runner.checkpoint_list()]
 
 
 @router.post("/api/episodes", response_model=EpisodeCreated, status_code=201,

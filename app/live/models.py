@@ -20,6 +20,9 @@ from gsmn.experiments.recipe import describe_stage, read_stage
 from gsmn.model.readout import Heads
 from gsmn.world.landmarks import CATALOGUE
 
+LIVE_KINDS = ("gsmn", "gsmn-no-plan")  # the models the runner flies: the page shows their maps
+FIRST_PERSON_KINDS = ("gs-fpv", "gs-fpv-mem")  # evaluated and fine-tuned (app.jobs), not flown by the runner
+
 
 @dataclass(frozen=True)
 class MapHeads(Heads):

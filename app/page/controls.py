@@ -21,6 +21,7 @@ from app.live.commands import (
     ShowEnv,
     StartEpisode,
 )
+from app.live.models import FIRST_PERSON_KINDS, LIVE_KINDS
 from app.live.recording import jpeg_bytes
 from app.page.compare_view import CompareView
 from app.page.events import (
@@ -118,7 +119,8 @@ class ViewerControls:
             choices = self._policy_choices()
             self._default_choice = choices[0]
             self.policy = gui.add_dropdown("Policy", choices, initial_value=choices[0],
-                                           hint="the expert flies with the model watching, when there is one")
+                                           hint=" ".join(("the expert flies with the model watching, when there is "
+                                                          "one.", self.not_live_note())).strip())
             self.mirror = gui.add_checkbox("Mirror ensemble", False,
                                            hint="the model also flies the mirror image of each step (left and right "
                                                 "swapped) and the two actions are averaged; the maps shown are the "
@@ -230,10 +232,14 @@ class ViewerControls:
         return f"**Flies:** checkpoint **{html.escape(str(name))}** (chosen under Policy; the server loaded " \
                f"{html.escape(str(default).removeprefix('Model: '))} at start)."
 
-    def _policy_choices(self) -> tuple[str, ...]:
+    def _policy_choices(self, first_person: bool = False) -> tuple[str, ...]:
+        """The policy menu: every GSMN checkpoint offered (the default first), then the expert. `first_person` adds
+        the first-person baselines (GS-FPV, GS-FPV-MEM), which the Failures and Fine-tune tabs evaluate and train but
+        the live view cannot fly: they build no map to show (`not_live_note`)."""
+        kinds = LIVE_KINDS + (FIRST_PERSON_KINDS if first_person else ())
         choices = []
         for info in self.runner.checkpoint_list():
-            if info.kind in ("gsmn", "gsmn-no-plan") and (info.loaded or info.error is None):
+            if info.kind in kinds and (info.loaded or info.error is None):
                 label = f"Model: {info.label or info.name}"
                 if label in self._checkpoint_of_choice and self._checkpoint_of_choice[label] != info.name:
                     label = f"Model: {info.name}"  # two checkpoints of one label (a menu of duplicates shows nothing)
@@ -249,6 +255,14 @@ class ViewerControls:
         if choice == EXPERT_CHOICE:
             return "expert", None
         return ("mirror" if self.mirror.value else "model"), self.checkpoint_of(choice)
+
+    def not_live_note(self) -> str:
+        """Which checkpoints offered the live view leaves out, and why ("" when none)."""
+        names = [info.label or info.name for info in self.runner.checkpoint_list() if info.kind in FIRST_PERSON_KINDS]
+        if not names:
+            return ""
+        return (f"Not flown here: {', '.join(names)}. First-person baselines build no map, so the live view has none "
+                "of their reasoning to show; evaluate them in the Failures tab.")
 
     def checkpoint_of(self, choice: str) -> str | None:
         """The checkpoint name of a policy menu entry ("Model: GSMN without J_ground (...)" -> "table2/no-ground");

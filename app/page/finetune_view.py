@@ -176,6 +176,10 @@ class FinetuneTab:
                 self.viewer.policy.value = name
                 self.run_note.content = (f"The Episode panel's policy is now **run-{run.id}**: press **Run** there, "
                                          "or replay a failure.")
+            else:  # a first-person baseline's run: evaluated here, not flown in the live view
+                self.run_note.content = (f"run-{run.id} is a first-person baseline: the live view cannot fly it "
+                                         "(it builds no map to show); evaluate it in the Failures tab, or use "
+                                         "Before/after.")
             return
         self._before_after(run)
 

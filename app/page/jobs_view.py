@@ -120,7 +120,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         self.run_iterations.on_update(lambda e: e.client is not None and put(IterationsChanged()))
 
     def _checkpoint_choices(self, expert: bool) -> tuple[str, ...]:
-        choices = tuple(c for c in self.viewer._policy_choices() if c != EXPERT_CHOICE)
+        choices = tuple(c for c in self.viewer._policy_choices(first_person=True) if c != EXPERT_CHOICE)
         if expert:
             choices += (EXPERT_CHOICE,)
         return choices or ("(no checkpoint)",)
