@@ -7,6 +7,8 @@ Worlds here are ones no other browser test uses (174, 181, 192)."""
 
 from __future__ import annotations
 
+import re
+
 import browser_support
 import httpx
 import numpy as np
@@ -124,3 +126,27 @@ def test_a_first_person_baseline_is_offered_where_it_can_be_used_and_said_where_
     page.keyboard.press("Escape")
     listed = {c["name"]: c for c in httpx.get(f"{dashboard.urls.api}/api/checkpoints", timeout=30).json()}
     assert listed["fpv"]["kind"] == "gs-fpv" and listed["fpv"]["live"] is False and listed["other"]["live"] is True
+
+
+def test_a_world_map_clicked_reads_its_cell_as_the_field_does(dashboard, page):
+    """Issue 77, item 6: clicking a world map panel reads the cell under the pointer (its outline on the ground, the
+    readout, and a notification, since the readout lies under the maps)."""
+    viewer = dashboard.viewer
+    page.get_by_role("tab", name="Camera and maps").click()
+    if viewer.view.episode is None:  # run alone: an episode of its own
+        page.get_by_role("button", name="Run", exact=True).click()
+        browser_support.until(lambda: viewer.view.episode is not None and not viewer.view.episode.live, 240,
+                              "an episode flown")
+    assert viewer.view.episode.steps[-1].maps is not None
+    box = page.locator('.gsmn-maps img[data-layer="semantic"]').locator("xpath=..")
+    box.wait_for()
+    size = box.bounding_box()
+    box.click(position={"x": size["width"] * 0.25 + 1, "y": size["height"] * 0.75 + 1})
+    n = dashboard.runner.config.model.map_size
+    row, col = int(0.75 * n), int(0.25 * n)
+    text = browser_support.poll(lambda: viewer.inspector.content, lambda t: f"Cell ({row}, {col})" in t,
+                                "the clicked cell's readout")
+    assert "perception" in text
+    page.get_by_text(re.compile(rf"Cell \({row}, {col}\)")).first.wait_for()  # the notification, in view
+    assert viewer.view.inspected is not None
+    assert not page.get_by_text("gsmn-cell", exact=True).is_visible(), "the field the click script types into is hidden"

@@ -44,15 +44,19 @@ from app.render.panels import (
     ACTIONS_AXES,
     ACTIONS_SCALES,
     ACTIONS_SERIES,
+    CELL_FIELD,
+    HIDE_CELL_FIELD,
     camera_html,
     compose_instruction,
     error_html,
+    parse_cell_click,
     parse_env_id,
     placeholder_html,
     side_help,
     suggestions,
     which_landmark,
 )
+from gsmn.model.grid import cell_centre
 from gsmn.task.instructions import SIDES
 from gsmn.task.understand import understand
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
@@ -203,7 +207,11 @@ class ViewerControls:
             self.camera = gui.add_html(camera_html(jpeg_bytes(np.zeros((144, 256, 3), np.uint8))))
             self.readout = gui.add_markdown("")
             self.maps = gui.add_html(placeholder_html("Run an episode to see the model's maps."))
-            self.inspector = gui.add_markdown("Click the field in the 3D view to inspect a map cell.")
+            self.inspector = gui.add_markdown("Click a world map, or the field in the 3D view, to read a map cell.")
+            self.cell_field = gui.add_text(CELL_FIELD, "")  # hidden: a world map's click script types its cell here
+            self.cell_field.on_update(self._on_map_click)
+            gui.add_html(HIDE_CELL_FIELD)
+            self.announce_cell = False
         with panel.add_tab("Actions", viser.Icon.CHART_LINE):
             self.plot = gui.add_uplot(
                 data=tuple(np.zeros(2) for _ in ACTIONS_SERIES), series=ACTIONS_SERIES,
@@ -423,7 +431,15 @@ class ViewerControls:
             self._events.put(FollowSet(bool(self.follow.value)))
 
     def _on_ground_click(self, x: float, y: float) -> None:
+        self.announce_cell = True  # the readout lies under the maps: a click also gets a notification
         self._events.put(GroundClicked(x, y))
+
+    def _on_map_click(self, event: viser.GuiEvent) -> None:
+        """A world map clicked (its script types the cell into the hidden field): read that cell."""
+        n = self.runner.config.model.map_size
+        cell = parse_cell_click(self.cell_field.value, n) if event.client is not None else None
+        if cell is not None:
+            self._on_ground_click(*cell_centre(*cell, self.runner.config.world.field_size, n))
 
     def _on_landmark_click(self, name: str) -> None:
         """A landmark clicked in the 3D view goes into the instruction (the rest of it kept)."""

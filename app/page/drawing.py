@@ -172,6 +172,8 @@ class ViewerDrawing:
         if xy is None:
             return
         world = episode.task.world
+        # a click's reading is also a notification: the readout lies under the maps, often out of view
+        announce, self.announce_cell = self.announce_cell, False
         with self.client.atomic():
             self.scene.mark_cell(xy, world.field_size / self.runner.config.model.map_size)
         if record.maps is None or model is None:
@@ -181,6 +183,9 @@ class ViewerDrawing:
         report = inspect_cell(xy[0], xy[1], m.semantic_w, grounding.relevance_w if grounding else m.relevance_w,
                               grounding.goal_w if grounding else m.goal_w, model.heads, world)
         self.inspector.content = inspector_markdown(report, record.step)
+        if announce:
+            self.client.add_notification("Map cell", inspector_markdown(report, record.step).replace("**", ""),
+                                         auto_close_seconds=10.0)
 
     def _set_timeline(self, t: int, last: int) -> None:
         self.timeline.max = max(1, last)

@@ -266,7 +266,10 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
         return None
     feature = semantic_w[:, r, c].astype(np.float32)
     probs = softmax(np.einsum("kc,c->k", heads.perception_w, feature) + heads.perception_b)
-    top = np.argsort(-probs)[:3]
+    by_name: dict[str, float] = {}  # a class with several models ("bush", "tower") once, their probabilities summed
+    for name, p in zip(heads.class_names, probs.tolist(), strict=True):
+        by_name[name] = by_name.get(name, 0.0) + p
+    top = sorted(by_name.items(), key=lambda kv: -kv[1])[:3]
     cx, cy = cell_centre(r, c, world.field_size, n)
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)
     p_named = positive_probability(relevance_w[:, r:r + 1, c:c + 1], heads.grounding_w, heads.grounding_b)[0, 0] \
@@ -274,6 +277,6 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
     p_goal = positive_probability(goal_w[:, r:r + 1, c:c + 1], heads.goal_w, heads.goal_b)[0, 0] \
         if heads.goal_trained else float("nan")
     return CellReport(r, c, cx, cy, bool(np.abs(feature).max() > 1e-6),
-                      tuple((heads.class_names[k], float(probs[k])) for k in top) if heads.perception_trained else (),
+                      tuple(top) if heads.perception_trained else (),
                       float(p_named), float(p_goal),
                       truth, tuple(float(v) for v in relevance_w[:, r, c]))

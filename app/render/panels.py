@@ -344,6 +344,30 @@ def inspector_markdown(report: CellReport | None, step: int) -> str:
             f"truly there: {truth}.")
 
 
+# A world map clicked reads its cell as a click on the field does: the script types "row,col#time" into the hidden
+# field CELL_FIELD (the page's `app.page.controls`), whose update reaches the server with its client.
+CELL_FIELD = "gsmn-cell"
+CELL_CLICK = ("var b=this.getBoundingClientRect(),n=+this.dataset.cells,r=Math.floor((event.clientY-b.top)/b.height*n),"
+              "c=Math.floor((event.clientX-b.left)/b.width*n),l=[].slice.call(document.querySelectorAll('label'))"
+              ".find(function(x){return x.textContent.trim()=='" + CELL_FIELD + "'});if(!l)return;var i=(l.closest("
+              "'.mantine-Flex-root')||l.parentElement).querySelector('input'),s=Object.getOwnPropertyDescriptor("
+              "HTMLInputElement.prototype,'value').set;s.call(i,r+','+c+'#'+Date.now());i.dispatchEvent(new Event("
+              "'input',{bubbles:true}));i.dispatchEvent(new Event('change',{bubbles:true}));")
+HIDE_CELL_FIELD = ("<img src='data:,' alt='' style='display:none' onerror=\"var f=function(n){var l=[].slice.call("
+                   "document.querySelectorAll('label')).find(function(x){return x.textContent.trim()=='" + CELL_FIELD +
+                   "'});if(!l){if(n<100)setTimeout(function(){f(n+1)},200);return;}(l.closest('.mantine-Flex-root')"
+                   "||l.parentElement).style.display='none';};f(0);\">")
+
+
+def parse_cell_click(value: str, cells: int) -> tuple[int, int] | None:
+    """The (row, col) a map click typed into CELL_FIELD ("12,30#1712345678"), None for anything else."""
+    try:
+        r, c = (int(v) for v in value.split("#", 1)[0].split(","))
+    except ValueError:
+        return None
+    return (r, c) if 0 <= r < cells and 0 <= c < cells else None
+
+
 def cell_marks_html(cells: list[tuple[int, int, tuple[int, int, int]]], size: int) -> str:
     """Outlines of cells (row, col, colour) over a size x size map drawn at any scale (positions in percent)."""
     step = 100 / size
@@ -387,10 +411,12 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
         if whatif_text and name in WHATIF_LAYERS:
             title += " · what-if"
         orient = ORIENTATIONS[layer.frame]
-        box = f"position:relative;border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1"
+        click = f' onclick="{CELL_CLICK}"' if layer.frame == "world" else ""
+        box = f"position:relative;border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1" + (
+            ";cursor:crosshair" if layer.frame == "world" else "")
         cells.append(f'<div><div style="font-weight:600;font-size:12px;line-height:1.2;margin-bottom:2px">'
                      f'{html.escape(title)}</div>'
-                     f'<div style="{box}">'
+                     f'<div style="{box}"{click} data-cells="{layer.rgb.shape[0]}">'
                      f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED};height:100%" '
                      f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
     caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
