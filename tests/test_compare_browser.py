@@ -140,6 +140,13 @@ def test_truth_layers_toggled_with_their_figures(dashboard, page):
     page.get_by_text("Truth beside the maps").first.click()
     s = wait_for(page, lambda s: len(s["truth"]) == 3, "the truth panels")
     assert s["truth"] == ["truth_semantic", "truth_relevance", "truth_goal"]
+    # each beside its model map, in the same row (issue 77, item 7), not all under the maps
+    boxes = page.evaluate("""() => Object.fromEntries([...document.querySelectorAll('.gsmn-maps img')].map(
+        i => [i.dataset.layer, i.getBoundingClientRect().toJSON()]))""")
+    for name in ("semantic", "relevance", "goal"):
+        model, truth = boxes[name], boxes["truth_" + name]
+        rows_overlap = truth["top"] < model["bottom"] and truth["bottom"] > model["top"]  # titles may wrap apart
+        assert rows_overlap and truth["left"] > model["right"] - 1, (name, model, truth)
     assert s["figures"][0].startswith("perception") and s["figures"][1].startswith("relevance AUC")
     assert any(ch.isdigit() for ch in s["figures"][1])
     episode = dashboard.viewer.view.episode

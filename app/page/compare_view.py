@@ -27,7 +27,7 @@ from app.live.recording import Episode
 from app.page.scene import R_to_wxyz, _has, _segments, yaw_wxyz
 from app.render.colors import data_uri, png_bytes
 from app.render.layers import map_layers
-from app.render.panels import PIXELATED, maps_html
+from app.render.panels import MAP_MAX_HEIGHT, PIXELATED, maps_html
 from app.render.truth import (
     TRUTH_LAYERS,
     TRUTH_TITLES,
@@ -312,13 +312,15 @@ class CompareView:
             parted += " Succeeded: " + (", ".join(winners) if winners else "neither") + "."
         return f"{title}\n| | | |\n|---|---|---|\n" + "\n".join(rows) + f"\n\n{parted}"
 
-    def truth_html(self, episode: Episode, t: int) -> str:
-        """The truth panels under the map panels, with the step's figures ("" when off or without maps)."""
+    def truth_cells(self, episode: Episode, t: int) -> tuple[dict[str, str], str]:
+        """The truth panels with the step's figures, by the model map each stands beside ("semantic", "relevance",
+        "goal"; `app.render.panels.maps_html` puts each to the right of its map), and the line under the maps;
+        ({}, "") when off or without maps."""
         if not self.truth_box.value or not episode.steps or episode.steps[t].maps is None:
-            return ""
+            return {}, ""
         model = self.viewer.runner.models.get(episode.checkpoint) if episode.checkpoint else None
         if model is None:
-            return ""
+            return {}, ""
         radius = self.viewer.runner.config.task.success_radius
         truth = episode_truth(episode, episode.steps[t].maps.semantic_w.shape[-1], radius)
         figures = step_figures(episode, model.heads, radius)
@@ -330,16 +332,15 @@ class CompareView:
         values = {"truth_semantic": f"perception {fmt(f.perception) if f else 'n/a'}",
                   "truth_relevance": f"relevance AUC {fmt(f.relevance) if f else 'n/a'}",
                   "truth_goal": f"goal mass {fmt(f.goal) if f else 'n/a'}"}
-        cells = "".join(
-            f'<div><div style="font-weight:600;font-size:12px;margin-bottom:2px">'
-            f'{html.escape(TRUTH_TITLES[name])}</div>'
+        cells = {name.removeprefix("truth_"): (
+            f'<div class="gsmn-truth" data-step="{t}"><div style="font-weight:600;font-size:12px;line-height:1.2;'
+            f'margin-bottom:2px">{html.escape(TRUTH_TITLES[name])}</div>'
+            f'<div style="border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1">'
             f'<img data-layer="{name}" src="{data_uri(png_bytes(truth_rgb(name, truth, model.heads)))}" '
-            f'style="{PIXELATED};border-radius:3px"/><div class="gsmn-figure" data-figure="{name}" '
-            f'style="font-size:11px">{values[name]}</div></div>' for name in TRUTH_LAYERS)
+            f'style="{PIXELATED};height:100%"/></div><div class="gsmn-figure" data-figure="{name}" '
+            f'style="font-size:11px">{values[name]}</div></div>') for name in TRUTH_LAYERS}
         wrong = went_wrong_text(went_wrong(figures[: t + 1], model.heads), ("<b>", "</b>"))
-        return (f'<div class="gsmn-truth" data-step="{t}" style="padding-right:10px;margin-top:8px">'
-                f'<div style="display:grid;grid-template-columns:repeat(3,minmax(0,1fr));gap:6px">{cells}</div>'
-                f'<div style="font-size:11px;opacity:.8;margin-top:3px">Up to step {t}: {wrong}</div></div>')
+        return cells, f'<div class="gsmn-truth-line" style="font-size:11px;opacity:.8">Up to step {t}: {wrong}</div>'
 
     def _plot_figures(self, episode: Episode) -> None:
         n = len(episode.steps)

@@ -146,8 +146,9 @@ class ViewerDrawing:
                                      visible)
         self.camera.content = camera_html(record.camera_jpeg)
         self.readout.content = readout_markdown(episode, t, counterfactual, self.view.counterfactual)
+        beside, line = self.compare.truth_cells(episode, t)
         self.maps.content = maps_html(episode, t, layers, self.view.counterfactual if grounding else None,
-                                      self._cell_of) + self.compare.truth_html(episode, t)
+                                      self._cell_of, beside, line)
         if self.view.counterfactual and grounding is not None:
             self.whatif_note.content = whatif_markdown(grounding, record)
         elif isinstance(counterfactual, str):

@@ -391,10 +391,11 @@ def camera_html(jpeg: bytes) -> str:
 
 
 def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_text: str | None,
-              cell_of) -> str:
+              cell_of, beside: dict[str, str] | None = None, line: str = "") -> str:
     """The map panels of one step, one per layer (`app.render.layers.map_layers`: semantic, relevance and goal north-up,
     the robot-frame goal map, then the record's other maps), each with its legend. The drone's cell is outlined in
-    white and the goal's in red on the world maps."""
+    white and the goal's in red on the world maps. `beside`: a panel to put to the right of a layer's, by its name
+    (the ground truth of that map; the maps with one then go first, one pair a row); `line`: a line under them."""
     attrs = (f'class="gsmn-maps" data-episode="{episode.id}" data-step="{t}" '
              f'data-counterfactual="{int(bool(whatif_text))}"')
     if layers is None:
@@ -405,7 +406,10 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
     marks = [(*cell_of(record.position[0], record.position[1]), (255, 255, 255)),
              (*cell_of(instruction.goal_x, instruction.goal_y), (230, 30, 30))]
     cells = []
-    for name, layer in layers.items():
+    beside = beside or {}
+    paired = [n for n in layers if n in beside]
+    for name in paired + [n for n in layers if n not in beside]:  # the pairs first: each one a row of the grid
+        layer = layers[name]
         overlay = cell_marks_html(marks, layer.rgb.shape[0]) if layer.frame == "world" else ""
         title = layer.title
         if whatif_text and name in WHATIF_LAYERS:
@@ -419,8 +423,10 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
                      f'<div style="{box}"{click} data-cells="{layer.rgb.shape[0]}">'
                      f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED};height:100%" '
                      f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
-    caption = (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
-               f"cells; white: the drone's cell, red: the goal.</div>")
+        if name in beside:
+            cells.append(beside[name])
+    caption = line + (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
+                      f"cells; white: the drone's cell, red: the goal.</div>")
     if whatif_text:
         caption += (f"<div style='font-size:11px;color:#9a6b00'>Relevance and goal grounded for what-if "
                     f"\"{html.escape(whatif_text)}\".</div>")
