@@ -198,3 +198,16 @@ def test_a_map_cell_names_each_class_once_and_a_map_click_reads_its_cell():
     layers = map_layers(e.steps[0].maps.maps, _heads())
     page = maps_html(e, 0, layers, None, lambda x, y: (0, 0))
     assert page.count(f'onclick="{CELL_CLICK}"') == sum(layer.frame == "world" for layer in layers.values()) >= 3
+
+
+def test_terms_of_art_carry_a_plain_gloss():
+    """Issue 77, item 16: P(stop), relevance AUC, goal mass, J_plan, N_D, beta0 ... each glossed where a panel uses
+    it (a tooltip) and all of them listed with their glosses; the page's own words stay as they are."""
+    from app.render.glossary import GLOSSARY, glossary_markdown, glossed
+
+    text = glossed("P(stop) 0.70 · relevance AUC 0.52 · goal mass 0.1 · trained without J_plan · N_D and beta0")
+    for term in ("P(stop)", "relevance AUC", "goal mass", "J_plan", "N_D", "beta0"):
+        assert f'">{term}</span>' in text and GLOSSARY[term].replace("'", "&#x27;") in text, term
+    assert glossed("| success region | never entered |") == "| success region | never entered |"
+    assert glossed("P(stop)").count("<span") == 1  # one pass: a gloss is never glossed again
+    assert all(f"**{term}**" in glossary_markdown() for term in GLOSSARY)

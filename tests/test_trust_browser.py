@@ -147,6 +147,9 @@ def test_a_world_map_clicked_reads_its_cell_as_the_field_does(dashboard, page):
     text = browser_support.poll(lambda: viewer.inspector.content, lambda t: f"Cell ({row}, {col})" in t,
                                 "the clicked cell's readout")
     assert "perception" in text
+    # item 16: the terms of art carry their gloss as a tooltip, in the maps' legends and the readout
+    assert page.locator('.gsmn-maps span[title^="how likely a map cell holds"]').count() >= 1
+    assert 'title="how likely a map cell' in text
     page.get_by_text(re.compile(rf"Cell \({row}, {col}\)")).first.wait_for()  # the notification, in view
     assert viewer.view.inspected is not None
     assert not page.get_by_text("gsmn-cell", exact=True).is_visible(), "the field the click script types into is hidden"

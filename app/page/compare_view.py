@@ -26,6 +26,7 @@ from app.live.compare import ForkEpisode, PolicySpec, StartComparison, diverged_
 from app.live.recording import Episode
 from app.page.scene import R_to_wxyz, _has, _segments, yaw_wxyz
 from app.render.colors import data_uri, png_bytes
+from app.render.glossary import glossed
 from app.render.layers import map_layers
 from app.render.panels import MAP_MAX_HEIGHT, PIXELATED, maps_html
 from app.render.truth import (
@@ -338,8 +339,8 @@ class CompareView:
             f'<div style="border-radius:3px;overflow:hidden;width:min(100%,{MAP_MAX_HEIGHT});aspect-ratio:1">'
             f'<img data-layer="{name}" src="{data_uri(png_bytes(truth_rgb(name, truth, model.heads)))}" '
             f'style="{PIXELATED};height:100%"/></div><div class="gsmn-figure" data-figure="{name}" '
-            f'style="font-size:11px">{values[name]}</div></div>') for name in TRUTH_LAYERS}
-        wrong = went_wrong_text(went_wrong(figures[: t + 1], model.heads), ("<b>", "</b>"))
+            f'style="font-size:11px">{glossed(values[name])}</div></div>') for name in TRUTH_LAYERS}
+        wrong = glossed(went_wrong_text(went_wrong(figures[: t + 1], model.heads), ("<b>", "</b>")))
         return cells, f'<div class="gsmn-truth-line" style="font-size:11px;opacity:.8">Up to step {t}: {wrong}</div>'
 
     def _plot_figures(self, episode: Episode) -> None:

@@ -39,6 +39,7 @@ from app.page.events import (
     WhatIf,
 )
 from app.render.colors import paths_legend_html
+from app.render.glossary import glossary_markdown
 from app.render.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, map_title
 from app.render.panels import (
     ACTIONS_AXES,
@@ -111,6 +112,8 @@ class ViewerControls:
         self.compare = CompareView(self)  # comparisons, forks and the ground truth (app.page.compare_view)
         self.compare.build_controls(gui)
         self._build_layers_folder(gui)
+        with gui.add_folder("What the words mean", expand_by_default=False):  # tooltips on the words say the same
+            self.glossary = gui.add_markdown(glossary_markdown())
         self._connect_controls()
 
     def _build_episode_folder(self, gui, env_id: int) -> None:

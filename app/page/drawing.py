@@ -22,6 +22,7 @@ from app.page.controls import SEMANTIC_READINGS
 from app.page.events import (
     Grounded,
 )
+from app.render.glossary import glossed
 from app.render.layers import inspect_cell, map_layers
 from app.render.panels import (
     actions_data,
@@ -30,9 +31,11 @@ from app.render.panels import (
     inspector_markdown,
     maps_html,
     readout_markdown,
+    result_markdown,
     timeline_marks,
     whatif_markdown,
 )
+from app.render.truth import result_rows
 from gsmn.task.instructions import InstructionError
 from gsmn.task.understand import parse_instruction
 
@@ -145,7 +148,7 @@ class ViewerDrawing:
                 self.scene.set_layer(name, layer.rgb if layer else None, layer.alpha if layer else None, opacity,
                                      visible)
         self.camera.content = camera_html(record.camera_jpeg)
-        self.readout.content = readout_markdown(episode, t, counterfactual, self.view.counterfactual)
+        self.readout.content = glossed(readout_markdown(episode, t, counterfactual, self.view.counterfactual))
         beside, line = self.compare.truth_cells(episode, t)
         self.maps.content = maps_html(episode, t, layers, self.view.counterfactual if grounding else None,
                                       self._cell_of, beside, line)
@@ -168,6 +171,13 @@ class ViewerDrawing:
             self._whatif_at = None
         self.render_seconds += time.perf_counter() - t0
 
+    def show_result(self, episode: Episode) -> None:
+        """The result table of an episode that ended, with its maps' agreement with the truth."""
+        model = self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
+        radius = self.runner.config.task.success_radius
+        self.result.content = glossed(result_markdown(episode, radius) + result_rows(
+            episode, model.heads if model else None, radius))
+
     def _inspect(self, episode: Episode, record: StepRecord, grounding: Grounding | None) -> None:
         xy, model = self.view.inspected, self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
         if xy is None:
@@ -183,7 +193,7 @@ class ViewerDrawing:
         m = record.maps
         report = inspect_cell(xy[0], xy[1], m.semantic_w, grounding.relevance_w if grounding else m.relevance_w,
                               grounding.goal_w if grounding else m.goal_w, model.heads, world)
-        self.inspector.content = inspector_markdown(report, record.step)
+        self.inspector.content = glossed(inspector_markdown(report, record.step))
         if announce:
             self.client.add_notification("Map cell", inspector_markdown(report, record.step).replace("**", ""),
                                          auto_close_seconds=10.0)

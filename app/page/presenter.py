@@ -46,7 +46,8 @@ log = logging.getLogger("gsmn.dashboard")
 # the landmark chips (one to three rows) too, so that they fit whatever the world
 HIDDEN = ("checkpoint_note", "env_number", "split", "env_buttons", "policy", "mirror", "follow", "watch_others",
           "speed", "shared_note", "status", "result", "side_chips", "name_chips")
-HIDDEN_FOLDERS = ("Counterfactual", "Layers on the ground", "Compare and fork")  # labels starting so
+# folders whose labels start so (the glossary too: presenter mode speaks plainly)
+HIDDEN_FOLDERS = ("Counterfactual", "Layers on the ground", "Compare and fork", "What the words mean")
 SHARE_FOLDER = "Share this step"  # kept, and moved under Playback so that Run and the timeline stay on the screen
 STYLE = "<style>html{font-size:19px !important}</style>"
 WIDE = 470  # px, the controls' width in presenter mode (330 otherwise): the 3D view keeps 810 px of a 1280 screen

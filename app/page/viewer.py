@@ -77,11 +77,9 @@ from app.render.panels import (
     error_html,
     other_side,
     placeholder_html,
-    result_markdown,
     status_line,
     world_summary,
 )
-from app.render.truth import result_rows
 from gsmn.model.grid import world_cell
 
 log = logging.getLogger("gsmn.dashboard")
@@ -310,10 +308,7 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         if episode is not v.episode:
             return self.compare.is_partner(episode)
         v.cursor = len(episode.steps) - 1 if v.follow else v.cursor
-        model = self.runner.models.get(episode.checkpoint) if episode.checkpoint else None
-        radius = self.runner.config.task.success_radius
-        self.result.content = result_markdown(episode, radius) + result_rows(
-            episode, model.heads if model else None, radius)
+        self.show_result(episode)
         self.status.content = status_line(episode)
         return True
 

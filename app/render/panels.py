@@ -21,6 +21,7 @@ import numpy as np
 from app.live.commands import MAX_ENV_ID, Grounding
 from app.live.recording import FINISHED, Episode, StepRecord
 from app.render.colors import data_uri, png_bytes
+from app.render.glossary import glossed
 from app.render.layers import CellReport, Layer
 from gsmn.task.metrics import steps_in_success_region
 
@@ -422,7 +423,7 @@ def maps_html(episode: Episode, t: int, layers: dict[str, Layer] | None, whatif_
                      f'{html.escape(title)}</div>'
                      f'<div style="{box}"{click} data-cells="{layer.rgb.shape[0]}">'
                      f'<img data-layer="{name}" src="{data_uri(png_bytes(layer.rgb))}" style="{PIXELATED};height:100%" '
-                     f'title="{orient}"/>{overlay}</div>{layer.legend_html}</div>')
+                     f'title="{orient}"/>{overlay}</div>{glossed(layer.legend_html)}</div>')
         if name in beside:
             cells.append(beside[name])
     caption = line + (f"<div style='font-size:11px;opacity:.75;margin-top:4px'>Step {t}. World maps north up, 0.94 m "
