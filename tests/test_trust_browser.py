@@ -153,3 +153,19 @@ def test_a_world_map_clicked_reads_its_cell_as_the_field_does(dashboard, page):
     page.get_by_text(re.compile(rf"Cell \({row}, {col}\)")).first.wait_for()  # the notification, in view
     assert viewer.view.inspected is not None
     assert not page.get_by_text("gsmn-cell", exact=True).is_visible(), "the field the click script types into is hidden"
+
+
+def test_a_goal_drawn_says_when_it_is_not_the_typed_instructions(dashboard, page):
+    """Issue 77 (the typist): while the typed text cannot be flown, or names another instruction, the goal drawn (the
+    world's own instruction's, or the shown episode's) is labelled as not the typed one; cleared, it is "goal"."""
+    viewer = dashboard.viewer
+    page.get_by_role("tab", name="Camera and maps").click()
+    browser_support.until(lambda: viewer.scene.task is not None, 60, "a goal drawn")
+    drawn = viewer.scene.task
+    box = field(page, "Instruction")
+    box.fill("go to the left side of the unicorn")
+    browser_support.until(lambda: viewer.scene.goal_label == "goal (not of the typed text)", 30, "the label changed")
+    box.fill(drawn.text)
+    browser_support.until(lambda: viewer.scene.goal_label == "goal", 30, "the goal's own label for its instruction")
+    box.fill("")
+    browser_support.until(lambda: viewer.scene.goal_label == "goal", 30, "the plain label with nothing typed")

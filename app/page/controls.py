@@ -392,7 +392,7 @@ class ViewerControls:
         understood = understand(text, world) if world is not None else None  # read once: note and chips
         self._set_chips(text, world, understood)
         if not text.strip():
-            self._can_fly(True, None)
+            self._can_fly(True, None, typed=False)
             return "Empty: the environment's own instruction will be flown."
         if world is None:
             self._can_fly(False, None)
@@ -409,9 +409,9 @@ class ViewerControls:
         ignored = (f" Ignored: {html.escape(', '.join(understood.ignored))}." if understood.ignored else "")
         return (f"Understood as: **{html.escape(instruction.text)}**{note}.{ignored} " + side_help(world, instruction))
 
-    def _can_fly(self, ok: bool, sides) -> None:
+    def _can_fly(self, ok: bool, sides, typed: bool = True) -> None:
         self.run_button.color = "green" if ok else "gray"
-        self._events.put(SidesTyped(sides))
+        self._events.put(SidesTyped(sides, typed))
 
     def _on_playback(self, event: viser.GuiEvent) -> None:
         self._events.put(PlaybackPressed(event.target.value))

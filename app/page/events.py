@@ -133,9 +133,11 @@ class Close(Event):
 
 @dataclass(frozen=True, eq=False)
 class SidesTyped(Event):
-    """A typed instruction names a landmark (world, instruction): draw its four sides; None clears them."""
+    """A typed instruction names a landmark (world, instruction): draw its four sides; None clears them. `typed`:
+    something is typed (a goal drawn that is not the typed instruction's then says so)."""
 
     sides: tuple | None
+    typed: bool = False
 
 
 # -- the Failures and Fine-tune tabs (`app.page.jobs_view`) ---------------------------------------------------------

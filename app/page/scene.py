@@ -262,6 +262,8 @@ class SceneView:
         self.body = None
         self.world: WorldSpec | None = None
         self.show_task = True
+        self.task: Instruction | None = None  # the instruction whose goal is drawn (`draw_task`)
+        self.goal_label = "goal"
         self.generation = 0  # of the landmarks drawn (`draw_world`)
         self.drone_marked = False  # presenter mode: a ring and a label on the drone
         self.mark: viser.FrameHandle | None = None
@@ -298,6 +300,8 @@ class SceneView:
         for name in TASK_PARTS:
             if _has(self.scene, f"{prefix}/{name}"):
                 self.scene.remove_by_name(f"{prefix}/{name}")
+        if prefix == "/task":
+            self.task, self.goal_label = instruction, "goal"
         if instruction is None or self.world is None:
             return
         world, r = self.world, self.success_radius
@@ -325,6 +329,18 @@ class SceneView:
             points = np.column_stack([path, np.full(len(path), 0.1)])
             self.scene.add_line_segments(f"{prefix}/demo", _segments(points), DEMO_RGB, thickness=0.18,
                                          visible=self.show_task)
+
+    def label_goal(self, typed: Instruction | None, anything_typed: bool) -> None:
+        """The drawn goal's label says so when it is not the goal of the instruction typed (text that cannot be flown,
+        or another instruction): the goal drawn is the world's own instruction's, or the episode's shown."""
+        if self.task is None or not _has(self.scene, "/task/goal_label"):
+            return
+        same = not anything_typed or (typed is not None and typed.text == self.task.text)
+        label = "goal" if same else "goal (not of the typed text)"
+        if label != self.goal_label:
+            self.goal_label = label
+            self.scene.add_label("/task/goal_label", label, position=(self.task.goal_x, self.task.goal_y, 2.3),
+                                 anchor="bottom-center", visible=self.show_task)
 
     def draw_sides(self, world: WorldSpec | None, instruction: Instruction | None = None) -> None:
         """While an instruction is typed: the four sides around the landmark it names, each labelled, the one asked

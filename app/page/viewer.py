@@ -274,9 +274,10 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
             case GroundClicked(x, y):
                 v.inspected = (x, y)
                 return True
-            case SidesTyped(sides):
+            case SidesTyped(sides, typed):
                 with self.client.atomic():
                     self.scene.draw_sides(*sides) if sides else self.scene.draw_sides(None)
+                    self.scene.label_goal(sides[1] if sides else None, typed)
                 return False
             case TaskVisibility():
                 with self.client.atomic():
