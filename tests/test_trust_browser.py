@@ -16,6 +16,7 @@ import pytest
 
 from app.browser import field
 from app.live.fixtures import make_untrained_checkpoint
+from app.page.controls import INSPECT_HINT
 from app.page.events import CursorMoved
 from gsmn.task.rollout import task_for_env
 
@@ -89,6 +90,9 @@ def test_a_comparison_names_who_flew_each_side_and_the_step_of_each_view(dashboa
     assert "step" in title
     summary = page.get_by_text("model other").count()
     assert summary >= 2, "the table and the captions name the second checkpoint"
+    # the second set of maps reads the semantic map as the first does: this world's landmarks named, the rest one
+    # "other classes" entry (found in the walk-through: a legend of landmarks the world lacks)
+    assert "not in this world" in viewer.compare.partner_maps.content
     # item 10: the other drone's frustum is made once and moved, never drawn anew (a new node shows at the origin)
     nodes = viewer.compare.partner_nodes
     assert nodes is not None
@@ -153,6 +157,12 @@ def test_a_world_map_clicked_reads_its_cell_as_the_field_does(dashboard, page):
     page.get_by_text(re.compile(rf"Cell \({row}, {col}\)")).first.wait_for()  # the notification, in view
     assert viewer.view.inspected is not None
     assert not page.get_by_text("gsmn-cell", exact=True).is_visible(), "the field the click script types into is hidden"
+    # another world: the reading of this one goes with it (found in the walk-through: a stale "truly there")
+    shown = viewer.scene.world.env_id
+    field(page, "Environment id").fill("181" if shown != 181 else "174")
+    browser_support.until(lambda: viewer.scene.world.env_id != shown, 60, "another world shown")
+    browser_support.until(lambda: viewer.inspector.content == INSPECT_HINT and viewer.view.inspected is None, 30,
+                          "the cell reading cleared")
 
 
 def test_a_goal_drawn_says_when_it_is_not_the_typed_instructions(dashboard, page):

@@ -173,3 +173,18 @@ def test_the_template_is_flown_and_the_words_it_ignored_are_named():
     assert understand("go back to the tank", w).reason.startswith("no side named")  # "back to" is no side
     assert understand("telephone box, far side", w).instruction.text == "go to the back side of the phone booth"
     assert understand("the boulder, right-hand side", w).instruction.text == "go to the right side of the rock"
+
+
+def test_a_head_noun_without_a_side_names_every_landmark_it_fits():
+    """Found in a walk-through: "the tree" in a world with two trees said only "no side named" and suggested the
+    first tree's four sides; it says both fit and its first suggestions take turns between them."""
+    from gsmn.config import preset
+    from gsmn.world.spec import world_for_env
+
+    w = next(world_for_env(e, preset("tiny").world) for e in range(70, 2000)
+             if {"fir tree", "palm tree"} <= {lm.noun_phrase for lm in world_for_env(e, preset("tiny").world).landmarks}
+             and "christmas tree" not in {lm.noun_phrase for lm in world_for_env(e, preset("tiny").world).landmarks})
+    u = understand("the tree", w)
+    assert u.instruction is None and u.reason.startswith("no side named, and several landmarks fit \"tree\"")
+    assert "fir tree" in u.reason and "palm tree" in u.reason
+    assert {s.rsplit("of the ", 1)[1] for s in u.suggestions[:2]} == {"fir tree", "palm tree"}

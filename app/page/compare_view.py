@@ -286,7 +286,7 @@ class CompareView:
         layers = None
         if record.maps is not None and model is not None:
             layers = map_layers(record.maps.maps, model.heads, self.viewer.value_mode.value,
-                                self.viewer.range_mode.value)
+                                self.viewer.range_mode.value, *self.viewer.world_reading(partner))
         self.partner_maps.content = title + maps_html(partner, pt, layers, None, self.viewer._cell_of).replace(
             'class="gsmn-maps"', 'class="gsmn-maps-partner"', 1)
 

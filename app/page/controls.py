@@ -68,6 +68,7 @@ SPEEDS = {"as fast as it goes": None, "real time (5 steps/s)": 5.0, "2x (10 step
 FOLLOW_LABEL = "Follow the live step"
 WATCH_LABEL = "Show episodes started elsewhere"
 ENV_TYPED_WAIT = 0.6  # s without a keystroke before a typed environment id shows its world
+INSPECT_HINT = "Click a world map, or the field in the 3D view, to read a map cell."
 # the Semantic map box's readings (app.render.layers.SEMANTIC_READINGS): presenter mode chooses the second
 SEMANTIC_READINGS = {"all 63 landmark classes": "all", "this world's landmarks": "world"}
 SHARED_NOTE = ("<small>This tab has its own timeline, episode, counterfactual and layers. **Shared by every tab:** "
@@ -210,7 +211,7 @@ class ViewerControls:
             self.camera = gui.add_html(camera_html(jpeg_bytes(np.zeros((144, 256, 3), np.uint8))))
             self.readout = gui.add_markdown("")
             self.maps = gui.add_html(placeholder_html("Run an episode to see the model's maps."))
-            self.inspector = gui.add_markdown("Click a world map, or the field in the 3D view, to read a map cell.")
+            self.inspector = gui.add_markdown(INSPECT_HINT)
             self.cell_field = gui.add_text(CELL_FIELD, "")  # hidden: a world map's click script types its cell here
             self.cell_field.on_update(self._on_map_click)
             gui.add_html(HIDE_CELL_FIELD)

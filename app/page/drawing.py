@@ -18,7 +18,7 @@ from app.live.commands import (
     Grounding,
 )
 from app.live.recording import Episode, StepRecord
-from app.page.controls import SEMANTIC_READINGS
+from app.page.controls import INSPECT_HINT, SEMANTIC_READINGS
 from app.page.events import (
     Grounded,
 )
@@ -134,9 +134,7 @@ class ViewerDrawing:
             if grounding:
                 maps = {**maps, "relevance_map_w": grounding.relevance_w, "goal_map_w": grounding.goal_w,
                         "goal_map_r": grounding.goal_r}
-            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value,
-                                tuple(lm.noun_phrase for lm in episode.task.world.landmarks),
-                                SEMANTIC_READINGS[self.semantic_reading.value])
+            layers = map_layers(maps, heads, self.value_mode.value, self.range_mode.value, *self.world_reading(episode))
         positions = self.compare.own_path(episode, np.array([s.position for s in episode.steps[: t + 1]]))
         opacity = float(self.opacity.value)
         with self.client.atomic():
@@ -170,6 +168,18 @@ class ViewerDrawing:
             self.whatif_to_frame.append(time.perf_counter() - self._whatif_at)
             self._whatif_at = None
         self.render_seconds += time.perf_counter() - t0
+
+    def forget_cell(self) -> None:
+        """Another world: no cell inspected, its outline and its reading gone (they were of the world before)."""
+        self.scene.mark_cell(None, 1.0)
+        self.view.inspected = None
+        self.inspector.content = INSPECT_HINT
+
+    def world_reading(self, episode: Episode) -> tuple[tuple[str, ...], str]:
+        """The episode's world's landmark names and the semantic reading chosen: how every map panel reads the
+        semantic map (the comparison's second set too)."""
+        return (tuple(lm.noun_phrase for lm in episode.task.world.landmarks),
+                SEMANTIC_READINGS[self.semantic_reading.value])
 
     def show_result(self, episode: Episode) -> None:
         """The result table of an episode that ended, with its maps' agreement with the truth."""

@@ -356,8 +356,7 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         with self.client.atomic():
             if self.scene.world != shown.world:
                 self.scene.draw_world(shown.world, self._on_ground_click, self._on_landmark_click)
-                self.scene.mark_cell(None, 1.0)
-                v.inspected = None
+                self.forget_cell()
             self.scene.clear_layers()
             self.scene.clear_path()
             self.scene.draw_counterfactual(None)
@@ -424,8 +423,7 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         with self.client.atomic():
             if self.scene.world != world:
                 self.scene.draw_world(world, self._on_ground_click, self._on_landmark_click)
-                self.scene.mark_cell(None, 1.0)
-                v.inspected = None
+                self.forget_cell()
             self.scene.clear_path()
             self.scene.draw_task(episode.task.instruction, episode.task.path)
             self.scene.draw_counterfactual(None)

@@ -266,9 +266,11 @@ def inspect_cell(x: float, y: float, semantic_w: np.ndarray, relevance_w: np.nda
         return None
     feature = semantic_w[:, r, c].astype(np.float32)
     probs = softmax(np.einsum("kc,c->k", heads.perception_w, feature) + heads.perception_b)
-    by_name: dict[str, float] = {}  # a class with several models ("bush", "tower") once, their probabilities summed
+    # a class with several models ("bush", "tower") once, at its likeliest model's probability: the reading the
+    # failure attribution gives (gsmn.attribution: the head's argmax, models sharing a name counting as one)
+    by_name: dict[str, float] = {}
     for name, p in zip(heads.class_names, probs.tolist(), strict=True):
-        by_name[name] = by_name.get(name, 0.0) + p
+        by_name[name] = max(by_name.get(name, 0.0), p)
     top = sorted(by_name.items(), key=lambda kv: -kv[1])[:3]
     cx, cy = cell_centre(r, c, world.field_size, n)
     truth = next((lm.noun_phrase for lm in world.landmarks if np.hypot(lm.x - cx, lm.y - cy) <= lm.radius), None)

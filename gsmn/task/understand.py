@@ -259,10 +259,11 @@ def understand(text: str, world: WorldSpec) -> Understanding:
     missing = [c for c in kinds if c not in in_world]
     if missing:
         return refuse(f"there is no {missing[0]} in this world", missing[0], listing=True)
-    if side is None:
+    if side is None:  # the suggestions take turns between the landmarks a head noun fits, so the first few name each
+        several = f", and several landmarks fit \"{heads[0]}\": {', '.join(kinds)}" if len(kinds) > 1 else ""
         return Understanding(text, None, None, kinds[0] if len(kinds) == 1 else None,
-                             reason="no side named: say left, right, front (in front of) or back (behind)",
-                             suggestions=tuple(TEMPLATE.format(side=s, noun_phrase=k) for k in kinds for s in SIDES),
+                             reason=f"no side named{several}: say left, right, front (in front of) or back (behind)",
+                             suggestions=tuple(TEMPLATE.format(side=s, noun_phrase=k) for s in SIDES for k in kinds),
                              ignored=ignored)
     choices = tuple(make_instruction(world, next(i for i, lm in enumerate(world.landmarks) if lm.noun_phrase == k),
                                      side) for k in kinds)
