@@ -9,7 +9,6 @@ the record cannot be written (`app.api.schema` says what every input may be).
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
@@ -18,7 +17,7 @@ from pydantic import BaseModel, Field
 from app.api.deps import COMMAND_TIMEOUT, Jobs, TheRunner
 from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
-from app.jobs.evaluation_export import FORMATS, export_evaluation, export_name
+from app.jobs.evaluation_export import FORMATS, export_evaluation, export_name, finite
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
 from app.jobs.results import replay_policy
 from app.jobs.settings import MAX_ROLLOUTS, RUN_PRESETS, run_settings
@@ -164,35 +163,24 @@ class RunModel(BaseModel):
     finished: float | None
 
 
-def clean(value):
-    """NaN and infinities are not JSON: None instead."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [clean(v) for v in value]
-    return value
-
-
 def evaluation_model(jobs: JobManager, e: Evaluation) -> EvaluationModel:
     return EvaluationModel(id=e.id, status=e.status, label=e.label, system=e.system, checkpoint=e.checkpoint,
                            env_ids=e.env_ids, baseline_id=e.baseline_id, run_id=e.run_id, source=e.source,
                            mirror_ensemble=e.mirror_ensemble, done=e.done, total=e.total,
-                           fraction=e.done / max(1, e.total), summary=clean(e.summary),
+                           fraction=e.done / max(1, e.total), summary=finite(e.summary),
                            stages=jobs.db.stage_counts(e.id), regions=jobs.db.region_counts(e.id), error=e.error,
                            created=e.created, started=e.started, finished=e.finished)
 
 
 def episode_model(e: EpisodeRow) -> EpisodeModel:
-    return EpisodeModel(**{k: clean(v) for k, v in e.__dict__.items() if k != "recording"})
+    return EpisodeModel(**{k: finite(v) for k, v in e.__dict__.items() if k != "recording"})
 
 
 def run_model(r: Run) -> RunModel:
     return RunModel(id=r.id, status=r.status, settings=r.settings, env_ids=r.env_ids,
                     source_evaluation_id=r.source_evaluation_id, init_checkpoint=r.init_checkpoint,
-                    checkpoint=r.checkpoint if r.status == "finished" else None, progress=clean(r.progress),
-                    metrics=clean(r.metrics), error=r.error, folder=r.folder, created=r.created, started=r.started,
+                    checkpoint=r.checkpoint if r.status == "finished" else None, progress=finite(r.progress),
+                    metrics=finite(r.metrics), error=r.error, folder=r.folder, created=r.created, started=r.started,
                     finished=r.finished)
 
 
@@ -287,7 +275,7 @@ def replay(evaluation_id: EvaluationId, request: ReplayRequest, jobs: Jobs, runn
 @router.get("/api/evaluations/{before_id:int}/compare/{after_id:int}", responses=responses(404, 422, 503),
             summary="Before/after: the episodes two evaluations share, side by side")
 def compare(before_id: EvaluationId, after_id: EvaluationId, jobs: Jobs) -> dict:
-    return clean(jobs.compare(before_id, after_id))
+    return finite(jobs.compare(before_id, after_id))
 
 
 # -- runs ----------------------------------------------------------------------------------------------------

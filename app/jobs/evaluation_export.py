@@ -26,7 +26,8 @@ COLUMNS = ("evaluation_id", "position", "env_id", "split", "system", "checkpoint
 
 
 def finite(value):
-    """NaN and infinities are not JSON (nor useful in a spreadsheet): None instead, also inside lists and dicts."""
+    """NaN and infinities are not JSON (nor useful in a spreadsheet): None instead, also inside lists and dicts (the
+    API's job models read their figures through it too)."""
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
