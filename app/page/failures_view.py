@@ -256,15 +256,17 @@ class FailuresTab:
         except ValueError:
             return None
 
-    def _show_estimate(self) -> None:
-        """Before an evaluation: how long the one in the form would take here (app.render.estimates)."""
+    def _show_estimate(self, evaluations: list[Evaluation] | None = None) -> None:
+        """Before an evaluation: how long the one in the form would take here (app.render.estimates), from the
+        record's `evaluations` (read when not given)."""
         n = self._chosen_episodes()
-        if n is not None and not self.jobs.db.evaluations(ACTIVE):
-            self.eval_estimate.content = f"*{evaluation_estimate(n, self.jobs.db.evaluations())}*"
+        evaluations = self.jobs.db.evaluations() if evaluations is None else evaluations
+        if n is not None and not any(e.status in ACTIVE for e in evaluations):
+            self.eval_estimate.content = f"*{evaluation_estimate(n, evaluations)}*"
 
     def _refresh_evaluation_status(self, evaluations: list[Evaluation]) -> None:
         active = [e for e in evaluations if e.status in ACTIVE]
-        self._show_estimate()
+        self._show_estimate(evaluations)
         if active:
             e = active[-1]
             self.eval_progress.visible = True
