@@ -418,6 +418,34 @@ def cmd_analyze_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_analyze_slices(args: argparse.Namespace) -> int:
+    from gsmn.analysis import slices
+    from gsmn.evaluation import write_json
+
+    def rows_of(path: str, record: str | None) -> list[dict]:
+        results = _read_results(path)
+        rows = slices.with_facts(results, Path(record) if record else None,
+                                 Path(args.checkpoint) if args.checkpoint and path == args.results else None,
+                                 log=lambda line: print(f"gsmn analyze slices: {line}", file=sys.stderr))
+        if args.keep_facts and path == args.results:  # kept in the file: the next reading computes nothing
+            by_env = {r["env_id"]: r for r in rows}
+            for episode in results["episodes"]:
+                episode["facts"] = by_env[int(episode["env_id"])]["facts"]
+                if episode.get("stage") is None and not episode["success"]:
+                    episode["stage"] = by_env[int(episode["env_id"])]["stage"]
+            write_json(Path(path), results)
+        return rows
+
+    other = rows_of(args.versus, args.versus_record) if args.versus else None
+    analysis = slices.analyze(rows_of(args.results, args.record), other)
+    if args.json:
+        write_json(Path(args.json), analysis)
+    if args.markdown or not args.json:
+        print(slices.markdown(analysis, args.name or Path(args.results).parent.name or args.results,
+                              args.versus_name or (Path(args.versus).parent.name if args.versus else "")))
+    return 0
+
+
 def cmd_analyze_dagger(args: argparse.Namespace) -> int:
     from gsmn.analysis.dagger import dagger_table
 
@@ -585,6 +613,23 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--name", default="episodes", help="what the episodes are, for the table")
     a.add_argument("--png", type=Path, default=None, help="also draw the before/after figure here (matplotlib)")
     a.set_defaults(func=cmd_analyze_compare)
+    a = analyze.add_parser("slices", help="an evaluation by slices (landmark, side, stage, map readings...), its "
+                           "confusion matrices, and against another evaluation of the same environments slice by slice")
+    a.add_argument("results", help="a gsmn eval --json file or a compact evaluation (checkpoints/table2/*/*.json)")
+    a.add_argument("--record", default=None, help="its --record folder: the map readings (grounded landmark, goal "
+                   "peak, the step it went wrong) for episodes that do not keep them")
+    a.add_argument("--checkpoint", default=None, help="the model whose heads read --record (default: the one the "
+                   "evaluation names)")
+    a.add_argument("--versus", default=None, metavar="OTHER", help="another evaluation of the same environments: "
+                   "fixed and broken episodes per slice, with a sign test")
+    a.add_argument("--versus-record", default=None, help="OTHER's --record folder")
+    a.add_argument("--json", default=None, metavar="OUT", help="write the analysis as JSON here")
+    a.add_argument("--markdown", action="store_true", help="print the markdown tables (the default without --json)")
+    a.add_argument("--name", default=None, help="what to call the evaluation (default: its folder's name)")
+    a.add_argument("--versus-name", default=None, help="what to call OTHER (default: its folder's name)")
+    a.add_argument("--keep-facts", action="store_true", help="write each episode's facts into RESULTS, so that a "
+                   "later reading computes nothing")
+    a.set_defaults(func=cmd_analyze_slices)
     a = analyze.add_parser("dagger", help="DAggerFM runs side by side, an iteration a row")
     a.add_argument("runs", nargs="+", type=Path, help="DAggerFM run folders")
     a.add_argument("--first", type=int, default=1, help="first iteration to print")

@@ -478,10 +478,12 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
     episodes are kept beside the stage copy (`partial_path`; committed by `keep_latest`), so a new machine flies only
     the rest; within a chunk, `gsmn eval --resume` keeps the finished episodes on this machine. None where `stop()`,
     asked before each chunk, says to stop (the chunks flown are kept)."""
+    from gsmn.analysis.slices import episode_facts
     from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
     from gsmn.evaluation import write_json
     from gsmn.model.checkpoint import load_checkpoint
     from gsmn.task.metrics import summarize
+    from gsmn.world.spec import world_for_env
 
     ship = layout.shipped(system)
     folder = layout.out / system.name
@@ -520,10 +522,13 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
             heads = Heads.of(model) if getattr(model.heads, "goal", None) is not None else False
         config = RunConfig.from_dict(config_dict)
         for ep in results["episodes"]:
-            stage = None
-            if heads and not ep["success"] and trace_path(record, int(ep["env_id"])).is_file():
-                stage = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config).stage
-            episodes[int(ep["env_id"])] = {k: v for k, v in ep.items() if k not in PER_STEP} | {"stage": stage}
+            attribution = None  # every episode's, a success's too: its map readings (gsmn.analysis.slices)
+            if heads and trace_path(record, int(ep["env_id"])).is_file():
+                attribution = attribute_record(ep, load_trace(trace_path(record, int(ep["env_id"]))), heads, config)
+            facts = episode_facts(ep, world_for_env(int(ep["env_id"]), config.world),
+                                  attribution.to_dict() if attribution else None, config.task.success_radius)
+            episodes[int(ep["env_id"])] = {k: v for k, v in ep.items() if k not in PER_STEP} | {
+                "stage": attribution.stage if attribution else None, "facts": facts}
         if len(episodes) < len(ids):
             write_json(partial_path(ship, split), {
                 "system": system.name, "split": split, "env_ids": ids, "stage": key,
