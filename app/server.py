@@ -138,7 +138,7 @@ class Dashboard:
         torch.set_num_threads(torch_threads)
         # the record first: a damaged or empty one is refused (naming it) before the simulator starts
         self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
-                               max_evaluations=max_evaluations)
+                               max_evaluations=max_evaluations, checkpoints_root=checkpoints_root)
         self.kept = KeptStore(self.jobs.db, config, max_episodes)  # every episode flown, in the record
         try:
             self.runner = Runner(config, checkpoint if checkpoint is not None else DEFAULT_CHECKPOINT,

@@ -168,3 +168,26 @@ def tree_digest(folder: Path) -> str:
         if path.is_file():
             h.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes())
     return h.hexdigest()
+
+
+def compact_evaluation(env_ids, won: Callable[[int], bool], system: str = "gsmn") -> dict:
+    """A compact evaluation as the Table 2 programme ships one (checkpoints/table2/*/evaluation.json), flown on
+    `env_ids` of the tiny preset with `won(env_id)` deciding each outcome: a winner ends on its goal, a loser on
+    its goal too but says it failed at control (the numbers, not the flight, are under test)."""
+    from gsmn.config import preset
+    from gsmn.task.rollout import task_for_env
+
+    episodes = []
+    for env_id in env_ids:
+        task = task_for_env(env_id, preset("tiny"))
+        i, lm = task.instruction, task.world.landmarks[task.instruction.landmark_index]
+        episodes.append({"system": system, "env_id": env_id, "instruction": i.text, "landmark_index": i.landmark_index,
+                         "noun_phrase": i.noun_phrase, "side": i.side, "ambiguous": i.ambiguous, "goal_x": i.goal_x,
+                         "goal_y": i.goal_y, "landmark_x": lm.x, "landmark_y": lm.y, "start_x": task.world.start_x,
+                         "start_y": task.world.start_y, "final_x": i.goal_x, "final_y": i.goal_y, "steps": 30,
+                         "stopped": True, "success": won(env_id), "landmark_success": True, "goal_distance": 0.0,
+                         "stage": None if won(env_id) else "control"})
+    n = len(episodes)
+    return {"system": system, "label": system, "recipe": {"preset": "tiny"}, "split": "dev", "env_ids": list(env_ids),
+            "summary": {"count": n, "success": 100.0 * sum(e["success"] for e in episodes) / max(1, n)},
+            "episodes": episodes}

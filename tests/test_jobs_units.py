@@ -120,7 +120,7 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     db.close()
     db = Database(path)
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.jobs.db.SCHEMA_VERSION == 4
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.jobs.db.SCHEMA_VERSION == 5
     db.close()
 
 

@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import pytest
+from support import compact_evaluation
 from test_attribution import INSTRUCTION, TARGET, WORLD, maps_where, run
 
 from gsmn.analysis import slices
@@ -135,26 +136,10 @@ def test_the_map_readings_on_hand_made_maps():
 def test_the_command_line_writes_the_json_the_issue_names(tmp_path):
     """`gsmn analyze slices` on a compact evaluation and another of the same environments: the JSON's keys, the
     facts kept with --keep-facts, and a clear message for a file that is not an evaluation."""
-    def evaluation(success_of) -> dict:
-        episodes = []
-        for env_id in (70, 71, 72, 73):
-            from gsmn.config import preset
-            from gsmn.task.rollout import task_for_env
-            task = task_for_env(env_id, preset("tiny"))
-            i = task.instruction
-            lm = task.world.landmarks[i.landmark_index]
-            episodes.append({"env_id": env_id, "instruction": i.text, "landmark_index": i.landmark_index,
-                             "noun_phrase": i.noun_phrase, "side": i.side, "ambiguous": i.ambiguous,
-                             "goal_x": i.goal_x, "goal_y": i.goal_y, "landmark_x": lm.x, "landmark_y": lm.y,
-                             "final_x": i.goal_x, "final_y": i.goal_y, "steps": 30, "stopped": True,
-                             "success": success_of(env_id), "landmark_success": True, "goal_distance": 0.0,
-                             "stage": None if success_of(env_id) else "control"})
-        return {"system": "gsmn", "recipe": {"preset": "tiny"}, "split": "dev", "episodes": episodes}
-
     a, b = tmp_path / "a" / "evaluation.json", tmp_path / "b" / "evaluation.json"
     for path, won in ((a, lambda e: e != 71), (b, lambda e: e in (70, 72))):
         path.parent.mkdir()
-        path.write_text(json.dumps(evaluation(won)))
+        path.write_text(json.dumps(compact_evaluation((70, 71, 72, 73), won)))
     out = tmp_path / "out.json"
     done = subprocess.run([sys.executable, "-m", "gsmn.cli", "analyze", "slices", str(a), "--versus", str(b),
                            "--json", str(out), "--markdown", "--keep-facts"], capture_output=True, text=True)

@@ -7,7 +7,8 @@ be understood, env_id < 0, NaN, missing checkpoint; `app.api.schema` says what e
 simulator does not answer in time; 401, 403 and 421 from the access checks (`app.api.access`). The OpenAPI schema
 lists each route's.
 
-The routes, in the order they are matched: evaluations and runs (`app.api.jobs`, with a job manager), health,
+The routes, in the order they are matched: evaluations and runs (`app.api.jobs`, with a job manager) and their
+analyses (`app.api.analyses`), health,
 checkpoints and queueing an episode (`app.api.episodes`), the episode list (`app.api.kept` with a keeper, else
 in memory), an episode and its steps (`app.api.episodes`), camera images, maps and grounding (`app.api.maps`),
 comparisons and forks (`app.api.comparisons`). Each handler reads what it needs from `app.state` (`app.api.deps`).
@@ -23,7 +24,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from app.api import comparisons, episodes, kept, maps
+from app.api import analyses, comparisons, episodes, kept, maps
 from app.api import jobs as job_routes
 from app.api.schema import ACCESS, plain_errors, responses, safe_text
 from app.jobs.kept import EpisodeKeeper
@@ -55,7 +56,7 @@ def make_api(runner: Runner, viewer_url: str | None = None, jobs: JobManager | N
 
 def routers(with_jobs: bool, with_keeper: bool) -> list[APIRouter]:
     """The routers in the order their routes are matched (and listed in the OpenAPI schema)."""
-    return [*([job_routes.router] if with_jobs else []), episodes.router,
+    return [*([job_routes.router, analyses.router] if with_jobs else []), episodes.router,
             kept.router if with_keeper else episodes.in_memory, episodes.episode_router, maps.router,
             comparisons.router]
 

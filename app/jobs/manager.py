@@ -40,6 +40,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
+from app.jobs.analysis import Analyses
 from app.jobs.db import FINISHED, Database, Evaluation, Run
 from app.jobs.results import EpisodeRecorder, compare, summarize_rows
 from app.jobs.runs import DAGGER_KINDS, run_command, run_complete, run_progress
@@ -52,6 +53,7 @@ log = logging.getLogger("gsmn.dashboard")
 
 MAX_ENVIRONMENTS = 5000
 CORES = os.cpu_count() or 1  # a job's worker processes (and a run's torch threads), at most
+CHECKPOINTS = Path(__file__).resolve().parents[2] / "checkpoints"  # the shipped evaluations are read from here
 MAX_IMPORT_BYTES = 256 * 2**20  # a `gsmn eval --json` file of 750 episodes with trajectories is a few MB
 
 
@@ -64,7 +66,7 @@ class JobManager:
 
     def __init__(self, data_dir: Path | str, config: RunConfig,
                  resolve_checkpoint: Callable[[str | None], Path], max_runs: int = 1, max_evaluations: int = 1,
-                 python: str = sys.executable, poll_seconds: float = 0.5):
+                 python: str = sys.executable, poll_seconds: float = 0.5, checkpoints_root: Path | str = CHECKPOINTS):
         if max_runs < 1 or max_evaluations < 1:
             raise ValueError("max_runs and max_evaluations must be at least 1")
         self.root = Path(data_dir).resolve()
@@ -77,6 +79,7 @@ class JobManager:
         self.poll_seconds = poll_seconds
         self.listeners: list[Callable[[str, int], None]] = []
         self.episodes = EpisodeRecorder(self.db)
+        self.analyses = Analyses(self.db, config, Path(checkpoints_root))  # slices, confusions, shipped evaluations
         self.supervisor = Supervisor(self.db, self.root, self._poll, self._notify, poll_seconds)
         self.recovered = self.supervisor.recover()
         self.supervisor.start()

@@ -8,6 +8,7 @@ import logging
 import math
 from pathlib import Path
 
+from app.jobs.analysis import facts_of
 from app.jobs.db import FINISHED, Database, EpisodeRow, Evaluation
 from app.live.commands import RunnerError
 from gsmn.config import RunConfig
@@ -49,6 +50,7 @@ class EpisodeRecorder:
             final_x=float(record["final_x"]), final_y=float(record["final_y"]),
             stage=attribution.get("stage") if attribution else None, attribution=attribution,
             recording=str(recording) if recording else None, region_steps=region, region_stop_p=stop_p))
+        self.db.set_facts(evaluation_id, {env_id: facts_of(record, config, attribution)})  # for the analysis view
 
     def _attribute(self, record: dict, config: RunConfig, checkpoint: str, trace) -> dict | None:
         from gsmn.attribution import attribute_record
