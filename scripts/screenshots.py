@@ -14,6 +14,7 @@ Chromium and writes its pictures:
 | compare | scripts/compare_screenshots.py | docs/dashboard_compare.png, _fork, _truth, _truth_plot |
 | jobs | scripts/jobs_screenshots.py | docs/dashboard_failures.png, dashboard_finetune.png, dashboard_before_after.png |
 | kept | scripts/kept_screenshots.py | docs/dashboard_episodes.png, docs/dashboard_presenter.png |
+| analysis | scripts/analysis_screenshots.py | docs/dashboard_analysis.png, docs/dashboard_analysis_confusion.png |
 
 Not taken here: docs/dashboard_failure_regions.png (`scripts/jobs_screenshots.py --regions EVAL.json --record DIR`,
 from a recorded evaluation of 500 test environments) and the figures of results (accuracy curves, maps,
@@ -45,6 +46,8 @@ def groups(checkpoint: str, preset: str) -> dict[str, list[str]]:
                  "--out", str(ROOT / "docs")],
         "kept": [str(scripts / "kept_screenshots.py"), "--preset", preset, "--checkpoint", checkpoint,
                  "--out", str(ROOT / "docs")],
+        "analysis": [str(scripts / "analysis_screenshots.py"), "--preset", preset, "--checkpoint", checkpoint,
+                     "--out", str(ROOT / "docs")],
     }
 
 

@@ -62,3 +62,11 @@ def page_on(dashboard, width: int, height: int) -> Iterator[playwright_api.Page]
         page.goto(dashboard.urls.page)
         page.get_by_role("button", name="Run", exact=True).wait_for()
         yield page
+
+
+def choose(page, label: str, option: str) -> None:
+    """Pick `option` in the viser dropdown labelled `label`."""
+    from app.browser import field
+
+    field(page, label).click()
+    page.get_by_role("option", name=option, exact=True).click()

@@ -101,7 +101,8 @@ def test_two_evaluations_compared_slice_by_slice_pair_by_environment():
                                                    "broken": 0, "p": 1.0}
     largest = found["largest"]
     assert largest[0]["p"] < 0.05 and all(s["n"] >= slices.MIN_SLICE for s in largest)
-    assert [s["p"] < 0.05 for s in largest] == sorted((s["p"] < 0.05 for s in largest), reverse=True)
+    assert [s["p_adjusted"] < 0.05 for s in largest] == sorted((s["p_adjusted"] < 0.05 for s in largest), reverse=True)
+    assert all(s["p_adjusted"] >= s["p"] for s in largest) and found["tested"] >= len(largest)
     assert any(s["slice"] == {"landmark": "tank", "side": "left"} and (s["fixed"], s["broken"]) == (8, 1)
                for s in largest)
     assert all(len(s["slice"]) <= 2 for s in largest)
@@ -157,3 +158,8 @@ def test_the_command_line_writes_the_json_the_issue_names(tmp_path):
     done = subprocess.run([sys.executable, "-m", "gsmn.cli", "analyze", "slices", str(bad)], capture_output=True,
                           text=True)
     assert done.returncode == 2 and "not an evaluation" in done.stderr
+
+
+def test_holm_corrects_for_every_slice_tested():
+    assert slices.holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
+    assert slices.holm([]) == [] and slices.holm([0.2]) == [0.2]

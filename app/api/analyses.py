@@ -61,6 +61,6 @@ def shipped(jobs: Jobs) -> list[dict]:
 
 
 @router.post("/api/shipped-evaluations/import", response_model=EvaluationModel, status_code=201,
-             responses=responses(404, 422, 503), summary="A shipped evaluation in the record (imported once)")
+             responses=responses(400, 404, 422, 503), summary="A shipped evaluation in the record (imported once)")
 def import_shipped(request: ShippedRequest, jobs: Jobs) -> EvaluationModel:
     return evaluation_model(jobs, jobs.analyses.import_shipped(request.key))

@@ -199,3 +199,26 @@ class PresetChosen(Event):
 @dataclass(frozen=True)
 class IterationsChanged(Event):
     """The planned iterations changed: the empty curves span them."""
+
+
+# -- the Analysis tab (`app.page.analysis_view`) --------------------------------------------------------------------
+@dataclass(frozen=True)
+class AnalysisAsked(Event):
+    """Analyse the evaluation picked (against the other picked, if any)."""
+
+
+@dataclass(frozen=True)
+class AnalysisViewChanged(Event):
+    """Another attribute or confusion matrix was picked: redraw the analysis shown."""
+
+
+@dataclass(frozen=True)
+class Picked(Event):
+    """A bar, cell or row of the analysis was clicked: what it counts (app.render.analysis_panels.pick, as typed)."""
+
+    value: str
+
+
+@dataclass(frozen=True)
+class AnalysisRowPressed(Event):
+    row: int  # on the page of the episodes shown

@@ -18,7 +18,7 @@ from app.jobs.results import replay_policy
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
-from app.page.events import ReplayRefused
+from app.page.events import CursorMoved, ReplayRefused
 from app.page.finetune_view import ENV_TRAIN
 from app.render.estimates import evaluation_estimate, evaluation_remaining
 from app.render.jobs_panels import (
@@ -209,16 +209,19 @@ class FailuresTab:
         self.list_note.content = (f"**{n}** episode{'s' if n != 1 else ''} match; page {self.page + 1} of {pages}. "
                                   "Click one to fly it again in the live view." if n else "No episode matches.")
 
-    def _replay(self, row: EpisodeRow) -> None:
-        self.selected = row
+    def _replay(self, row: EpisodeRow, detail=None, step: int | None = None) -> None:
+        """Fly an evaluated episode again in the live view, telling `detail` (default: the failure browser's) how
+        it goes; once it ends, the timeline moves to `step` (where the analysis says it went wrong), if given."""
+        self.selected, self.replay_detail, self.replay_step = row, detail or self.detail, step
         e = self.jobs.db.evaluation(row.evaluation_id)
         try:
             policy, checkpoint = replay_policy(e)
         except RunnerError as err:
-            self.detail.content = episode_html(row, error_html(html.escape(str(err))))
+            self.replay_detail.content = episode_html(row, error_html(html.escape(str(err))))
             return
-        self.replay_note = "Flying it again in the live view..."
-        self.detail.content = episode_html(row, self.replay_note)
+        self.replay_note = "Flying it again in the live view..." + (
+            f" The timeline then shows step {step}, where it went wrong." if step is not None else "")
+        self.replay_detail.content = episode_html(row, self.replay_note)
         future = self.runner.post(StartEpisode(row.env_id, None, policy, checkpoint, preempt=True,
                                                 origin=self.viewer.origin))
 
@@ -246,7 +249,10 @@ class FailuresTab:
                        "see its maps at any step." if same else
                        f"it differs from the evaluation ({episode.result.steps} steps, ended {gap:.2f} m away): the "
                        f"server's settings differ from the evaluation's."))
-        self.detail.content = episode_html(row, note)
+            if self.replay_step is not None:
+                self.viewer._events.put(CursorMoved(self.replay_step))
+                note += f" Shown at step {self.replay_step}, where it went wrong."
+        self.replay_detail.content = episode_html(row, note)
 
     def _chosen_episodes(self) -> int | None:
         """How many episodes the form would evaluate (None while its ids do not parse)."""

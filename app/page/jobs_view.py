@@ -25,8 +25,12 @@ from app.jobs.db import EpisodeRow
 from app.jobs.manager import JobManager
 from app.live.commands import RunnerListener
 from app.live.recording import Episode
+from app.page.analysis_view import AnalysisTab
 from app.page.controls import EXPERT_CHOICE
 from app.page.events import (
+    AnalysisAsked,
+    AnalysisRowPressed,
+    AnalysisViewChanged,
     Close,
     EvaluationChosen,
     Event,
@@ -34,6 +38,7 @@ from app.page.events import (
     ImportAsked,
     IterationsChanged,
     JobChanged,
+    Picked,
     PresetChosen,
     Pressed,
     Replayed,
@@ -53,8 +58,8 @@ log = logging.getLogger("gsmn.dashboard")
 REFRESH_SECONDS = 0.5
 
 
-class JobsView(FailuresTab, FinetuneTab, RunnerListener):
-    """One tab's Failures and Fine-tune tabs: one queue of typed events (`app.page.events`) and one UI thread."""
+class JobsView(FailuresTab, FinetuneTab, AnalysisTab, RunnerListener):
+    """One tab's Failures, Fine-tune and Analysis tabs: one queue of typed events (`app.page.events`), one UI thread."""
 
     def __init__(self, viewer, jobs: JobManager):
         self.viewer, self.jobs = viewer, jobs
@@ -68,6 +73,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         self.selected: EpisodeRow | None = None
         self.replays: dict[int, tuple[int, int]] = {}  # live episode id -> (evaluation id, env id)
         self.replay_note = ""
+        self.replay_detail, self.replay_step = None, None  # where the replay's progress shows; its step to show
         self.compare_ids: tuple[int, int] | None = None  # (before, after) shown side by side
         self._choices: dict[str, int] = {}
         self._run_choices: dict[str, int] = {}
@@ -96,6 +102,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         gui, panel = self.client.gui, self.viewer.panel
         self._build_failures(gui, panel)
         self._build_finetune(gui, panel)
+        self._build_analysis(gui, panel)
         self._connect()
 
     def _connect(self) -> None:
@@ -118,6 +125,13 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         self.run_actions.on_click(lambda e: put(Pressed("run_action", e.target.value)))
         self.compare_replay.on_click(lambda e: put(Pressed("compare_replay", e.target.value)))
         self.run_iterations.on_update(lambda e: e.client is not None and put(IterationsChanged()))
+        self.an_button.on_click(lambda _: put(AnalysisAsked()))
+        for control in (self.an_attribute, self.an_matrix):
+            control.on_update(lambda e: e.client is not None and put(AnalysisViewChanged()))
+        self.pick_field.on_update(lambda e: e.client is not None and put(Picked(self.pick_field.value)))
+        for k, button in enumerate(self.an_rows):
+            button.on_click(lambda _, k=k: put(AnalysisRowPressed(k)))
+        self.an_pager.on_click(lambda e: put(Pressed("analysis_page", e.target.value)))
 
     def _checkpoint_choices(self, expert: bool) -> tuple[str, ...]:
         choices = tuple(c for c in self.viewer._policy_choices(first_person=True) if c != EXPERT_CHOICE)
@@ -178,7 +192,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
             case Replayed(episode):
                 self._replayed(episode)
             case ReplayRefused(row, message):
-                self.detail.content = episode_html(row, error_html(f"Not replayed: {html.escape(message)}"))
+                self.replay_detail.content = episode_html(row, error_html(f"Not replayed: {html.escape(message)}"))
             case PresetChosen():
                 self._fill_preset()
                 self._show_run_estimate(self.jobs.db.runs())
@@ -191,6 +205,16 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
             case IterationsChanged():
                 self._span_iterations()
                 self._show_run_estimate(self.jobs.db.runs())
+            case AnalysisAsked():
+                self._analyse()
+            case AnalysisViewChanged():
+                self._show_analysis()
+            case Picked(value):
+                self._picked(value)
+            case AnalysisRowPressed(k):
+                self._replay_analysed(k)
+            case Pressed("analysis_page", button):
+                self._page_analysis(button)
 
     def _refresh(self) -> None:
         evaluations = self.jobs.db.evaluations()
@@ -208,6 +232,7 @@ class JobsView(FailuresTab, FinetuneTab, RunnerListener):
         self._refresh_evaluation_status(evaluations)
         self._refresh_runs(runs)
         self._refresh_compare()
+        self._refresh_analysable(evaluations)
 
     def _refresh_checkpoints(self) -> None:
         """Finished runs are checkpoints to switch to: in the Episode panel's policy list and here."""

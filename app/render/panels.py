@@ -348,16 +348,34 @@ def inspector_markdown(report: CellReport | None, step: int) -> str:
 # A world map clicked reads its cell as a click on the field does: the script types "row,col#time" into the hidden
 # field CELL_FIELD (the page's `app.page.controls`), whose update reaches the server with its client.
 CELL_FIELD = "gsmn-cell"
+
+
+def _field_input(field: str) -> str:
+    """JavaScript: `i`, the input of the viser text field labelled `field` (return where there is none yet)."""
+    return ("var l=[].slice.call(document.querySelectorAll('label')).find(function(x){return x.textContent.trim()"
+            "=='" + field + "'});if(!l)return;var i=(l.closest('.mantine-Flex-root')||l.parentElement)"
+            ".querySelector('input');")
+
+
+def typing_script(field: str, value_js: str) -> str:
+    """An onclick script that types the JavaScript expression `value_js` (and the time, so a second click on the same
+    thing is news too) into the hidden field `field`, whose update reaches the server with its client."""
+    return ("var v=" + value_js + ";(function(){" + _field_input(field) + "var s=Object.getOwnPropertyDescriptor("
+            "HTMLInputElement.prototype,'value').set;s.call(i,v+'#'+Date.now());i.dispatchEvent(new Event('input',"
+            "{bubbles:true}));i.dispatchEvent(new Event('change',{bubbles:true}));})();")
+
+
+def hide_field_html(field: str) -> str:
+    """An invisible image whose script hides the text field `field` once the page has drawn it."""
+    return ("<img src='data:,' alt='' style='display:none' onerror=\"var f=function(n){var l=[].slice.call("
+            "document.querySelectorAll('label')).find(function(x){return x.textContent.trim()=='" + field +
+            "'});if(!l){if(n<100)setTimeout(function(){f(n+1)},200);return;}(l.closest('.mantine-Flex-root')"
+            "||l.parentElement).style.display='none';};f(0);\">")
+
+
 CELL_CLICK = ("var b=this.getBoundingClientRect(),n=+this.dataset.cells,r=Math.floor((event.clientY-b.top)/b.height*n),"
-              "c=Math.floor((event.clientX-b.left)/b.width*n),l=[].slice.call(document.querySelectorAll('label'))"
-              ".find(function(x){return x.textContent.trim()=='" + CELL_FIELD + "'});if(!l)return;var i=(l.closest("
-              "'.mantine-Flex-root')||l.parentElement).querySelector('input'),s=Object.getOwnPropertyDescriptor("
-              "HTMLInputElement.prototype,'value').set;s.call(i,r+','+c+'#'+Date.now());i.dispatchEvent(new Event("
-              "'input',{bubbles:true}));i.dispatchEvent(new Event('change',{bubbles:true}));")
-HIDE_CELL_FIELD = ("<img src='data:,' alt='' style='display:none' onerror=\"var f=function(n){var l=[].slice.call("
-                   "document.querySelectorAll('label')).find(function(x){return x.textContent.trim()=='" + CELL_FIELD +
-                   "'});if(!l){if(n<100)setTimeout(function(){f(n+1)},200);return;}(l.closest('.mantine-Flex-root')"
-                   "||l.parentElement).style.display='none';};f(0);\">")
+              "c=Math.floor((event.clientX-b.left)/b.width*n);" + typing_script(CELL_FIELD, "r+','+c"))
+HIDE_CELL_FIELD = hide_field_html(CELL_FIELD)
 
 
 def parse_cell_click(value: str, cells: int) -> tuple[int, int] | None:

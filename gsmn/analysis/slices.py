@@ -312,8 +312,8 @@ def _difference(pairs: Sequence[tuple[Mapping, Mapping]]) -> dict[str, Any]:
 def versus(rows: Sequence[Mapping[str, Any]], other: Sequence[Mapping[str, Any]], top: int = 12) -> dict[str, Any]:
     """The first evaluation against `other` on the environments both flew: per slice of ENVIRONMENT both rates and
     the paired difference ("fixed": episodes only the first won, "broken": only `other` won; p of a two-sided sign
-    test), and `largest`: the slices over up to two attributes combined with the largest differences, the
-    significant ones (p < 0.05) first."""
+    test), and `largest`: the slices over up to two attributes combined with the largest differences, those still
+    significant (p < 0.05) after Holm's correction for the `tested` slices first."""
     pairs = paired(rows, other)
     values = [attribute_values(a) for a, _ in pairs]
     out: dict[str, Any] = {"n": len(pairs), "overall": _difference(pairs), "slices": {}}
@@ -332,10 +332,26 @@ def versus(rows: Sequence[Mapping[str, Any]], other: Sequence[Mapping[str, Any]]
     ranked = []
     for key, group in groups.items():
         d = _difference(group)
-        if d["n"] >= MIN_SLICE and d["fixed"] != d["broken"]:
+        if d["n"] >= MIN_SLICE and d["fixed"] + d["broken"]:
             ranked.append({"slice": dict(key), **d})
-    ranked.sort(key=lambda s: (s["p"] >= 0.05, -abs(s["fixed"] - s["broken"]), s["p"], len(s["slice"])))
-    out["largest"] = ranked[:top]
+    for s, adjusted in zip(ranked, holm([s["p"] for s in ranked]), strict=True):
+        s["p_adjusted"] = adjusted
+    # the significant first, each group by its difference in success (points), the larger first
+    ranked.sort(key=lambda s: (s["p_adjusted"] >= 0.05, -abs(s["rate"] - s["rate_versus"]), s["p"], len(s["slice"])))
+    out["tested"] = len(ranked)
+    out["largest"] = [s for s in ranked if s["fixed"] != s["broken"]][:top]
+    return out
+
+
+def holm(ps: Sequence[float]) -> list[float]:
+    """Holm's step-down adjustment of p-values for testing them all at once (the versus table tests every slice of
+    up to two attributes: some would pass p < 0.05 by chance alone)."""
+    order = sorted(range(len(ps)), key=lambda i: ps[i])
+    out = [1.0] * len(ps)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (len(ps) - rank) * ps[i]))
+        out[i] = running
     return out
 
 
@@ -356,7 +372,7 @@ def analyze(rows: Sequence[Mapping[str, Any]], other: Sequence[Mapping[str, Any]
     if other is not None:
         v = versus(rows, other)
         out["versus"] = v["slices"]
-        out["versus_summary"] = {"n": v["n"], "overall": v["overall"], "largest": v["largest"]}
+        out["versus_summary"] = {"n": v["n"], "overall": v["overall"], "largest": v["largest"], "tested": v["tested"]}
     return out
 
 
@@ -454,11 +470,13 @@ def markdown(analysis: Mapping[str, Any], name: str = "the evaluation", versus_n
         o = summary["overall"]
         lines += [f"{name} against {versus_name} on the {summary['n']} environments both flew: {o['rate']:.1f} % "
                   f"against {o['rate_versus']:.1f} %, {o['fixed']} fixed and {o['broken']} broken (sign test "
-                  f"p = {o['p']:.3g}). The slices that differ most, significant ones (p < 0.05) first:", "",
-                  "| slice | episodes | success | versus | fixed | broken | p |", "|---|---:|---:|---:|---:|---:|---:|"]
+                  f"p = {o['p']:.3g}). The slices that differ most, those significant after Holm's correction for the "
+                  f"{summary['tested']} slices tested first:", "",
+                  "| slice | episodes | success | versus | fixed | broken | p | p, corrected |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
         for s in summary["largest"]:
             where = ", ".join(f"{ATTRIBUTES[a]}: {v}" for a, v in s["slice"].items())
             lines.append(f"| {where} | {s['n']} | {s['rate']:.1f} % | {s['rate_versus']:.1f} % | {s['fixed']} | "
-                         f"{s['broken']} | {s['p']:.3g} |")
+                         f"{s['broken']} | {s['p']:.3g} | {s['p_adjusted']:.3g} |")
         lines.append("")
     return "\n".join(lines)
