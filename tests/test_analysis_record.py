@@ -193,3 +193,25 @@ def test_an_older_record_gains_the_facts_table(tmp_path):
     assert db.facts(eid) == {} and len(db.episodes(eid)) == 6
     assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == 5
     db.close()
+
+
+def test_an_episode_recorded_as_an_evaluation_flies_keeps_its_facts(tmp_path):
+    """The monitor records each progress line (`EpisodeRecorder.record`): the episode's facts are kept with it, the
+    same as computed later from its row, so an evaluation flown from the page is analysed without computing them."""
+    from app.jobs.results import EpisodeRecorder
+
+    db = Database(tmp_path / "gsmn.sqlite")
+    evaluation = compact_evaluation(ENVS[:3], lambda e: e != 86)
+    eid = db.add_evaluation(system="oracle", checkpoint=None, env_ids=list(ENVS[:3]), label="flown")
+    recorder = EpisodeRecorder(db)
+    for position, ep in enumerate(evaluation["episodes"]):
+        recorder.record(eid, position, {**ep, "trajectory": [[ep["final_x"], ep["final_y"], 2.0, 0.0]]},
+                        preset("tiny"), None, None)
+    kept = db.facts(eid)
+    assert sorted(kept) == list(ENVS[:3])
+    assert kept[86] == facts_of(evaluation["episodes"][1], preset("tiny"), None)
+    assert kept[86]["stopped_at"] == evaluation["episodes"][1]["noun_phrase"] and kept[86]["grounded"] is None
+    from app.jobs.analysis import row_facts
+
+    assert row_facts(db.episode(eid, 86), preset("tiny")) == kept[86], "the same as from the row"
+    db.close()
