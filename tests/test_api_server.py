@@ -4,6 +4,7 @@ that say what was wrong while the server keeps serving."""
 
 from __future__ import annotations
 
+import math
 import subprocess
 import time
 
@@ -99,6 +100,32 @@ def test_the_expert_on_its_own_instruction(server):
     assert body["result"]["goal_distance"] >= 0
 
 
+def test_the_expert_flies_a_world_with_a_landmark_moved(server):
+    """Environment 70 with the box removed and the pumpkin moved where it stood: the instruction keeps its words,
+    its goal moved with the pumpkin, the expert flies toward it, and the episode (and its kept row) say what was
+    changed."""
+    from gsmn.config import preset
+    from gsmn.task.edits import edited_task, parse_edits
+    from gsmn.task.rollout import task_for_env
+
+    client = server["client"]
+    task = task_for_env(70, preset("tiny"))
+    box = next(k for k, lm in enumerate(task.world.landmarks) if lm.noun_phrase == "box")
+    edits = [{"op": "remove", "landmark": box}, {"op": "move", "landmark": task.instruction.landmark_index,
+                                                  "x": task.world.landmarks[box].x, "y": task.world.landmarks[box].y}]
+    expected = edited_task(task, parse_edits(edits), preset("tiny")).instruction
+    created = client.post("/api/episodes", json={"env_id": 70, "policy": "expert", "world_edits": edits})
+    assert created.status_code == 201, created.text
+    body = finished(client, created.json()["id"])
+    assert body["instruction"] == task.instruction.text and body["world_edits"] == edits
+    assert (body["goal_x"], body["goal_y"]) == pytest.approx((expected.goal_x, expected.goal_y))
+    assert abs(body["goal_x"] - task.instruction.goal_x) + abs(body["goal_y"] - task.instruction.goal_y) > 5
+    steps = client.get(f"/api/episodes/{body['id']}/steps").json()["steps"]
+    first, last = (steps[0]["x"], steps[0]["y"]), (steps[-1]["x"], steps[-1]["y"])
+    goal = (expected.goal_x, expected.goal_y)
+    assert math.dist(last, goal) < math.dist(first, goal) - 3, "the expert flew toward the moved goal"
+
+
 def test_the_model_as_a_mirror_ensemble(server):
     client = server["client"]
     created = client.post("/api/episodes", json={"env_id": 72, "policy": "mirror"}).json()
@@ -120,6 +147,14 @@ def test_the_model_as_a_mirror_ensemble(server):
     ("post", "/api/episodes", {"env_id": 70, "checkpoint": "/etc"}, 422, "not one this dashboard offers"),
     ("post", "/api/episodes", {"env_id": 70, "checkpoint": " "}, 422, "checkpoint is empty"),
     ("post", "/api/episodes", {"env_id": 70, "policy": "pilot"}, 422, "policy"),
+    ("post", "/api/episodes", {"env_id": 70, "world_edits": [{"op": "remove", "landmark": 2}]}, 422,
+     "names the pumpkin (landmark 2), which the edits remove"),
+    ("post", "/api/episodes", {"env_id": 70, "world_edits": [{"op": "move", "landmark": 2, "x": 1.0, "y": 9.0}]}, 422,
+     "would be off the field"),
+    ("post", "/api/episodes", {"env_id": 70, "world_edits": [{"op": "paint", "landmark": 2}]}, 422, "op"),
+    ("post", "/api/episodes", {"env_id": 70, "world_edits": [{"op": "move", "landmark": 2}]}, 422, "needs x, y"),
+    ("post", "/api/episodes", {"env_id": 70, "world_edits": [{"op": "add", "noun_phrase": "unicorn", "x": 9.0,
+                                                              "y": 9.0}]}, 422, "no landmark called 'unicorn'"),
     ("get", "/api/episodes/424242", None, 404, "no episode 424242"),
     ("get", "/api/episodes/abc", None, 422, "episode_id"),
     ("get", "/api/episodes/424242/steps", None, 404, "no episode"),

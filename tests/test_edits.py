@@ -122,3 +122,23 @@ def test_no_edits_is_the_task_itself_and_edits_round_trip():
     items = [{"op": "move", "landmark": 3, "x": 12.0, "y": 20.5}, {"op": "remove", "landmark": 5},
              {"op": "add", "noun_phrase": "tank", "x": 4.0, "y": 9.0}]
     assert [e.to_dict() for e in parse_edits(items)] == items
+
+
+def test_a_kept_episode_reads_back_its_edited_world(tmp_path):
+    """The record keeps the edits with the episode (its task JSON) and makes them again on reading it back, so a
+    kept episode, its link and its export show the world it flew."""
+    from app.jobs.db import Database
+    from app.jobs.kept import row_summary
+    from app.jobs.kept_store import KeptStore, kept_row
+    from app.live.recording import Episode
+
+    edits = parse_edits([{"op": "remove", "landmark": 0 if NAMED != 0 else 1}])
+    task = edited_task(TASK, edits, CONFIG)
+    db = Database(tmp_path / "gsmn.sqlite")
+    db.add_kept(kept_row(Episode(id=1, task=task, policy="expert", system="oracle", checkpoint=None, horizon=20,
+                                 world_edits=edits), CONFIG.world))
+    back = KeptStore(db, CONFIG, 4).load(1)
+    assert back.task.world == task.world and back.world_edits == edits
+    assert back.task.instruction == task.instruction
+    assert row_summary(db.kept(1))["world_edits"] == [e.to_dict() for e in edits]
+    db.close()

@@ -17,13 +17,23 @@ from pydantic import BaseModel, Field
 from app.api.deps import COMMAND_TIMEOUT, MaybeKeeper, TheRunner, ViewerUrl, episode_or_404
 from app.api.models import EpisodeCreated, EpisodeId, EpisodeSummary, Policy, summary
 from app.api.schema import EnvId, Strict, Text, responses
-from app.live.commands import MAX_ENV_ID, CancelEpisode, StartEpisode
+from app.live.commands import MAX_ENV_ID, CancelEpisode, RunnerError, StartEpisode
 from app.live.models import FIRST_PERSON_KINDS
 from app.render.truth import step_figures, went_wrong
+from gsmn.task.edits import MAX_EDITS, EditError, parse_edits
 
 router = APIRouter()  # health, checkpoints, queue an episode
 in_memory = APIRouter()  # the episode list without a keeper
 episode_router = APIRouter()  # one episode: its summary, cancelling it, its steps
+
+
+class WorldEditModel(Strict):
+    op: Literal["move", "remove", "add"]
+    landmark: int | None = Field(None, ge=0, le=63, description="move, remove: the landmark's index in the world")
+    x: float | None = Field(None, allow_inf_nan=False, description="move, add: where its centre goes (m)")
+    y: float | None = Field(None, allow_inf_nan=False)
+    noun_phrase: Text | None = Field(None, max_length=60, description="add: a landmark of the catalogue, e.g. 'tank'")
+    yaw: float | None = Field(None, allow_inf_nan=False, description="add: its heading (rad)")
 
 
 class EpisodeRequest(Strict):
@@ -38,6 +48,13 @@ class EpisodeRequest(Strict):
         "model", description="who flies: the model; the model as a test-time mirror ensemble (it also flies the "
         "mirror image of each step and the two actions are averaged; the maps are the unmirrored copy's); or the "
         "expert (with the model watching, when one is loaded)")
+    world_edits: list[WorldEditModel] = Field(
+        [], max_length=MAX_EDITS, description="edits to the environment's world, in order (gsmn.task.edits): move "
+        "or remove a landmark by its index, add one from the catalogue; the instruction keeps its words and follows "
+        "its landmark. An edit that cannot stand (off the field, on the drone, onto another landmark, the named "
+        "landmark removed) is refused with 422 saying why",
+        examples=[[{"op": "move", "landmark": 3, "x": 12.0, "y": 20.5}, {"op": "remove", "landmark": 5},
+                   {"op": "add", "noun_phrase": "tank", "x": 4.0, "y": 9.0}]])
 
 
 class ModelStep(BaseModel):
@@ -120,8 +137,12 @@ def checkpoints(runner: TheRunner) -> list[CheckpointModel]:
 @router.post("/api/episodes", response_model=EpisodeCreated, status_code=201,
              responses=responses(400, 409, 422, 503), summary="Queue an episode; it flies after those before it")
 def create_episode(request: EpisodeRequest, runner: TheRunner) -> EpisodeCreated:
-    e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint),
-                    COMMAND_TIMEOUT)
+    try:
+        edits = parse_edits([w.model_dump(exclude_none=True) for w in request.world_edits])
+    except EditError as err:
+        raise RunnerError(str(err)) from err
+    e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint,
+                                 world_edits=edits), COMMAND_TIMEOUT)
     return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
                           typed_instruction=e.typed, policy=e.policy)
 

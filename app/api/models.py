@@ -77,6 +77,8 @@ class EpisodeSummary(BaseModel):
     comparison_side: Literal[1, 2] | None = Field(None, description="its side of that comparison: 1 the first "
                                                   "policy, 2 the one compared with")
     compared_with: int | None = Field(None, description="the other episode of that comparison")
+    world_edits: list[dict] = Field([], description="the edits its world carries (POST /api/episodes' "
+                                    "world_edits); empty: the environment's world as generated")
 
 
 def _result(r: EpisodeResult | None) -> ResultModel | None:
@@ -93,4 +95,4 @@ def summary(e: Episode) -> EpisodeSummary:
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
                           error=e.error, created=e.created, fork_of=fork[0], fork_step=fork[1],
                           comparison=e.comparison, comparison_side=e.comparison_side,
-                          compared_with=e.compared_with)
+                          compared_with=e.compared_with, world_edits=[w.to_dict() for w in e.world_edits])

@@ -349,4 +349,5 @@ def row_summary(row) -> dict[str, Any]:
             "error": row["error"], "pinned": bool(row["pinned"]), "created": float(row["created"]),
             "bytes": int(row["bytes"]), "kept_steps": int(row["steps"]), "fork_of": fork.get("episode_id"),
             "fork_step": fork.get("step"), "comparison": comparison.get("id"),
-            "comparison_side": comparison.get("side"), "compared_with": comparison.get("with")}
+            "comparison_side": comparison.get("side"), "compared_with": comparison.get("with"),
+            "world_edits": task.get("world_edits", [])}

@@ -23,6 +23,7 @@ import numpy as np
 from app.jobs.db import Database
 from app.live.recording import Episode, EpisodeResult, EpisodeStore, StepMaps, StepRecord
 from gsmn.config import RunConfig, WorldConfig
+from gsmn.task.edits import edit_world, parse_edits
 from gsmn.task.instructions import Instruction
 from gsmn.task.rollout import Task
 from gsmn.world.spec import world_for_env
@@ -90,12 +91,15 @@ def step_of_row(row, where: str = "the record") -> StepRecord:
                       damaged=damaged)
 
 
-def task_json(task: Task, world_config: WorldConfig, typed: str | None = None, relation: dict | None = None) -> str:
+def task_json(task: Task, world_config: WorldConfig, typed: str | None = None, relation: dict | None = None,
+              world_edits: tuple = ()) -> str:
     """The parsed instruction (the template flown) and the text typed, the demonstration path, and the world settings
     the world is drawn with (so that the episode reads back the same under a server, or `gsmn export`, started with
-    other settings); and `relation` (`episode_relation`): where a fork starts, which side of a comparison."""
+    other settings), with the edits made to it (gsmn.task.edits); and `relation` (`episode_relation`): where a fork
+    starts, which side of a comparison."""
     return json.dumps({"instruction": asdict(task.instruction), "typed": typed,
                        "path": np.asarray(task.path).round(4).tolist(), "world": asdict(world_config),
+                       **({"world_edits": [e.to_dict() for e in world_edits]} if world_edits else {}),
                        **(relation or {})})
 
 
@@ -160,11 +164,14 @@ class KeptStore(EpisodeStore):
         task = json.loads(row["task"])
         world_config = WorldConfig(**task["world"]) if "world" in task else self.config.world
         world = world_for_env(int(row["env_id"]), world_config)
+        edits = parse_edits(task.get("world_edits", []))
+        if edits:  # the world it flew: the same edits, made again
+            world = edit_world(world, edits, RunConfig(world=world_config))[0]
         instruction = Instruction(**task["instruction"])
         episode = Episode(id=int(row["id"]), task=Task(world, instruction, np.array(task["path"], np.float64)),
                           policy=row["policy"], system=row["system"], checkpoint=row["checkpoint"],
                           horizon=int(row["horizon"]), status=row["status"], error=row["error"],
-                          created=float(row["created"]), typed=task.get("typed"))
+                          created=float(row["created"]), typed=task.get("typed"), world_edits=edits)
         if row["result"] is not None:
             episode.result = EpisodeResult(**json.loads(row["result"]))
         episode.steps.extend(step_of_row(r, str(self.db.path)) for r in self.db.kept_steps(episode_id))
@@ -194,6 +201,7 @@ def kept_row(episode: Episode, world_config: WorldConfig) -> dict[str, Any]:
     world = episode.task.world
     return {"id": episode.id, "created": episode.created, "status": episode.status, "env_id": world.env_id,
             "split": world.split, "instruction": episode.instruction,
-            "task": task_json(episode.task, world_config, episode.typed, episode_relation(episode)),
+            "task": task_json(episode.task, world_config, episode.typed, episode_relation(episode),
+                              episode.world_edits),
             "policy": episode.policy, "system": episode.system, "checkpoint": episode.checkpoint,
             "horizon": episode.horizon, "error": episode.error}

@@ -67,6 +67,7 @@ class StartEpisode(Command):
     checkpoint: str | None = None  # None: the default checkpoint
     preempt: bool = False  # end the live episode and fly this one now (the page); else queue it (the API)
     paused: bool = False  # stop after the first step (single-stepping from the start)
+    world_edits: tuple = ()  # gsmn.task.edits.WorldEdit: the world flown is the environment's with these edits
 
 
 @dataclass

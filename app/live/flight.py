@@ -18,11 +18,12 @@ from app.live.recording import Episode, StepMaps
 from gsmn.config import RunConfig
 from gsmn.task.baselines import ExpertPolicy
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.edits import EditError, edit_world, edited_task
 from gsmn.task.instructions import Instruction, InstructionError
-from gsmn.task.rollout import PolicyAction, Task
+from gsmn.task.rollout import PolicyAction, Task, task_for_env
 from gsmn.task.understand import parse_instruction
 from gsmn.world.env import Observation
-from gsmn.world.spec import WorldSpec
+from gsmn.world.spec import WorldSpec, world_for_env
 
 # Maps of the record the dashboard does not keep per step: the image features and their projection are the
 # largest (about 100 kB a step together, more than all the others), and the semantic map holds what they add up to.
@@ -111,6 +112,25 @@ def task_for_text(world: WorldSpec, text: str, config: RunConfig, need_path: boo
         if need_path:
             raise RunnerError(f"the expert has no path to that goal ({e}); try another side") from e
         return straight_task(world, instruction, config.expert.waypoint_spacing)
+
+
+def task_for_start(env_id: int, text: str | None, config: RunConfig, need_path: bool,
+                   world_edits: tuple = ()) -> Task:
+    """The task an episode flies: the environment's own instruction, or the typed one, in the environment's world with
+    `world_edits` made (gsmn.task.edits: the environment's instruction follows its landmark; a typed one is read in
+    the edited world). An edit that cannot stand, or an instruction it leaves unflyable, is a RunnerError."""
+    world = world_for_env(env_id, config.world)
+    try:
+        if text is None or not text.strip():
+            try:
+                task = task_for_env(env_id, config)
+            except DemoPathError as e:
+                raise RunnerError(f"environment {env_id} has no instruction with a demonstration path ({e})") from e
+            return edited_task(task, world_edits, config)
+        return task_for_text(edit_world(world, world_edits, config)[0] if world_edits else world, text, config,
+                             need_path)
+    except EditError as e:
+        raise RunnerError(str(e)) from e
 
 
 def step_maps(policy) -> StepMaps | None:

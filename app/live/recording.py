@@ -136,6 +136,7 @@ class Episode:
     compared_with: int | None = None  # the other episode of that comparison
     origin: str | None = None  # the browser tab that started it (app.live.commands.Command.origin); None: the API
     typed: str | None = None  # the instruction as typed (gsmn.task.understand); the task's is the template flown
+    world_edits: tuple = ()  # gsmn.task.edits.WorldEdit: the edits its world carries (task.world is the edited one)
 
     @property
     def env_id(self) -> int:

@@ -48,7 +48,7 @@ from app.live.commands import (
     WorldShown,
 )
 from app.live.compare import Comparison, Comparisons
-from app.live.flight import Flight, Unwind, flight_for, instruction_for_text, step_maps, task_for_text
+from app.live.flight import Flight, Unwind, flight_for, instruction_for_text, step_maps, task_for_start
 from app.live.models import Checkpoints, LoadedModel
 from app.live.recording import (
     CANCELLED,
@@ -242,7 +242,7 @@ class Runner:
 
     def _do_StartEpisode(self, c: StartEpisode) -> Episode:
         episode = self._new_episode(c.env_id, c.instruction, c.policy, c.checkpoint, c.paused,
-                                    check_queue=not c.preempt)
+                                    check_queue=not c.preempt, world_edits=c.world_edits)
         self.episodes.add(episode)
         self._enqueue(c, episode, episode)
         return episode
@@ -265,10 +265,10 @@ class Runner:
             self._pending.append(item)
 
     def _new_episode(self, env_id: int, text: str | None, policy: str, checkpoint: str | None,
-                     paused: bool = False, check_queue: bool = False) -> Episode:
+                     paused: bool = False, check_queue: bool = False, world_edits: tuple = ()) -> Episode:
         """A checked episode (and, with `check_queue`, room for it in the queue), not yet stored or queued."""
         self._check_env_id(env_id)
-        c = StartEpisode(env_id, text, policy, checkpoint, paused=paused)
+        c = StartEpisode(env_id, text, policy, checkpoint, paused=paused, world_edits=tuple(world_edits))
         if c.policy not in POLICIES:
             raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {c.policy!r}")
         model: LoadedModel | None
@@ -283,19 +283,13 @@ class Runner:
                            f"checkpoint.")
         if check_queue:
             self._check_queue()
-        world = world_for_env(int(c.env_id), self.config.world)
-        if c.instruction is None or not c.instruction.strip():
-            try:
-                task = task_for_env(int(c.env_id), self.config)
-            except DemoPathError as e:
-                raise RunnerError(f"environment {c.env_id} has no instruction with a demonstration path ({e})") from e
-        else:
-            task = task_for_text(world, c.instruction, self.config, need_path=c.policy == "expert")
+        task = task_for_start(int(c.env_id), c.instruction, self.config, c.policy == "expert", c.world_edits)
         episode = Episode(id=self.episodes.new_id(), task=task, policy=c.policy,
                           system=model.policy.name if c.policy != "expert" else ExpertPolicy.name,
                           checkpoint=model.path.resolve().as_posix() if model else None,
                           horizon=self.config.task.horizon, start_paused=c.paused, origin=self._origin,
-                          typed=c.instruction.strip() if c.instruction and c.instruction.strip() else None)
+                          typed=c.instruction.strip() if c.instruction and c.instruction.strip() else None,
+                          world_edits=tuple(c.world_edits))
         return episode
 
     def _do_Pause(self, c: Pause) -> bool:
