@@ -438,6 +438,8 @@ def cmd_analyze_slices(args: argparse.Namespace) -> int:
 
     other = rows_of(args.versus, args.versus_record) if args.versus else None
     analysis = slices.analyze(rows_of(args.results, args.record), other)
+    if other is not None and analysis["versus_summary"]["n"] == 0:
+        raise ValueError(f"{args.results} and {args.versus} share no environment: nothing to compare")
     if args.json:
         write_json(Path(args.json), analysis)
     if args.markdown or not args.json:

@@ -9,6 +9,7 @@ hand-made files in a checkpoints folder of the test's own, beside the run's untr
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import browser_support
@@ -17,6 +18,7 @@ import pytest
 from support import compact_evaluation
 
 from app.page.analysis_view import SHIPPED
+from app.render.jobs_panels import evaluation_label
 from gsmn.analysis import slices
 from gsmn.config import preset
 from gsmn.task.rollout import task_for_env
@@ -73,7 +75,7 @@ def test_analyse_an_ablation_against_its_control_and_open_a_confusion_cell(dashb
         # a slice: its bar opens its episodes
         browser_support.choose(page, "Slice by", slices.ATTRIBUTES["stopped"])
         page.locator("[data-pick]").filter(has_text="another landmark").first.click()
-        page.get_by_text("stopped at: another landmark").first.wait_for()
+        page.get_by_text("ended at: another landmark").first.wait_for()
 
         # a confusion cell off the diagonal: exactly its episodes, as the API answers for that cell
         browser_support.choose(page, "Matrix", "named -> stopped at (unambiguous)")
@@ -91,10 +93,31 @@ def test_analyse_an_ablation_against_its_control_and_open_a_confusion_cell(dashb
         shown = browser_support.poll(lambda: page.evaluate(PICKED), lambda v: len(v) == len(expected), "the rows")
         assert sorted(int(t.split()[1]) for t in shown) == sorted(e["env_id"] for e in expected)
 
-        # an episode flies again in the live view, shown at the step it went wrong
+        # an episode of a hand-made file flies again, but not as the file says: the step is not claimed for it
         page.get_by_role("button", name=shown[0]).click()
-        page.get_by_text(f"Shown at step {WENT_WRONG}, where it went wrong").first.wait_for(timeout=120_000)
+        page.get_by_text(f"It went wrong at step {WENT_WRONG} of the evaluation's flight, not of this one").first \
+            .wait_for(timeout=120_000)
+
+
+def test_a_replayed_episode_of_a_flown_evaluation_shows_the_step_it_went_wrong(dashboard):
+    """An evaluation the server flies (its maps recorded, its failures attributed): analysed, a failure picked from
+    its stage's bar flies again exactly as evaluated and the timeline shows the step its stage went wrong."""
+    e = dashboard.jobs.start_evaluation(None, None, None, None, [85, 86])
+    done = browser_support.poll(lambda: dashboard.jobs.db.evaluation(e.id), lambda r: r.status == "finished",
+                                "the evaluation", 240)
+    failed = [r for r in dashboard.jobs.db.episodes(done.id) if not r.success]
+    steps = {env: f.get("went_wrong") for env, f in dashboard.jobs.db.facts(done.id).items()}
+    chosen = next((r for r in failed if steps.get(r.env_id) is not None), None)
+    assert chosen is not None, f"no failure with a step it went wrong: {steps}"
+    with browser_support.page_on(dashboard, 1280, 800) as page:
+        page.get_by_role("tab", name="Analysis").click()
+        browser_support.choose(page, "Evaluation", evaluation_label(done))
+        page.get_by_role("button", name="Analyse", exact=True).click()
+        page.get_by_text(f"Evaluation {e.id}").first.wait_for()
+        browser_support.choose(page, "Slice by", slices.ATTRIBUTES["stage"])
+        page.locator(f"[data-pick*='\"stage\": \"{chosen.stage}\"']").first.click()
+        page.get_by_role("button", name=re.compile(f"^▶ {chosen.env_id} ")).click()
+        page.get_by_text(f"Shown at step {steps[chosen.env_id]}, where it went wrong").first.wait_for(timeout=120_000)
         page.get_by_role("tab", name="Camera and maps").first.click()
-        maps = browser_support.poll(lambda: page.evaluate(MAPS), lambda m: m and m["step"] == WENT_WRONG,
-                                    "the maps at the step it went wrong", 60)
-        assert maps["step"] == WENT_WRONG
+        browser_support.poll(lambda: page.evaluate(MAPS), lambda m: m and m["step"] == steps[chosen.env_id],
+                             "the maps at the step it went wrong", 60)

@@ -9,6 +9,7 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from support import compact_evaluation
 from test_attribution import INSTRUCTION, TARGET, WORLD, maps_where, run
@@ -163,3 +164,35 @@ def test_the_command_line_writes_the_json_the_issue_names(tmp_path):
 def test_holm_corrects_for_every_slice_tested():
     assert slices.holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
     assert slices.holm([]) == [] and slices.holm([0.2]) == [0.2]
+
+
+def test_the_landmark_ended_at_is_the_named_one_first_and_a_twin_is_told_apart():
+    """Ending inside the named landmark's region reads as the named landmark even nearer another; ending at another
+    landmark of the same name (an ambiguous instruction) is "another landmark of the same name", never a success's
+    reading, and the matrix reads it as "another pumpkin"."""
+    import dataclasses
+
+    episode = {"landmark_index": INSTRUCTION.landmark_index, "goal_x": INSTRUCTION.goal_x,
+               "goal_y": INSTRUCTION.goal_y}
+    others = [lm for lm in WORLD.landmarks if lm is not TARGET]
+    near = min(others, key=lambda lm: math.dist((lm.x, lm.y), (TARGET.x, TARGET.y)))
+    # a point inside the pumpkin's 6 m region, nearer the landmark closest to it
+    t = next(t for t in np.linspace(0, 1, 201) if math.dist(
+        p := (TARGET.x + t * (near.x - TARGET.x), TARGET.y + t * (near.y - TARGET.y)), (near.x, near.y))
+        < math.dist(p, (TARGET.x, TARGET.y)) < 6.0)
+    point = (TARGET.x + t * (near.x - TARGET.x), TARGET.y + t * (near.y - TARGET.y))
+    facts = slices.episode_facts(dict(episode, final_x=point[0], final_y=point[1]), WORLD, None, demonstration=1.0)
+    assert (facts["stopped_at"], facts["stopped_which"]) == ("pumpkin", "named")
+    twin = dataclasses.replace(near, noun_phrase="pumpkin", class_id=TARGET.class_id)
+    world = dataclasses.replace(WORLD, landmarks=tuple(twin if lm is near else lm for lm in WORLD.landmarks))
+    at_twin = slices.episode_facts(dict(episode, final_x=twin.x + 1.0, final_y=twin.y), world, None,
+                                   demonstration=1.0)
+    assert (at_twin["stopped_at"], at_twin["stopped_which"]) == ("pumpkin", "same name")
+    row = {"env_id": 1, "landmark": "pumpkin", "side": "back", "ambiguous": True, "success": False,
+           "landmark_success": False, "stopped": True, "steps": 9, "stage": "goal",
+           "facts": at_twin | {"version": slices.FACTS_VERSION}}
+    assert slices.attribute_values(row)["stopped"] == "another landmark of the same name"
+    assert slices.confusion([row])["stopped_at"] == {"pumpkin": {"another pumpkin": 1}}
+    assert slices.select([row], cell=("stopped_at", "pumpkin", "another pumpkin")) == [1]
+    assert slices.valid_facts(facts) and not slices.valid_facts(facts | {"went_wrong": "x"})
+    assert not slices.valid_facts({k: v for k, v in facts.items() if k != "version"})

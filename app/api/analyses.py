@@ -11,7 +11,7 @@ from pydantic import Field
 
 from app.api.deps import Jobs
 from app.api.jobs import EpisodeModel, EvaluationId, EvaluationModel, episode_model, evaluation_model
-from app.api.schema import Strict, Text, responses
+from app.api.schema import Id, Strict, Text, responses
 from app.live.commands import RunnerError
 from gsmn.analysis.slices import ATTRIBUTES, CONFUSIONS
 
@@ -28,8 +28,8 @@ class ShippedRequest(Strict):
 @router.get("/api/evaluations/{evaluation_id:int}/slices", responses=responses(404, 422, 503),
             summary="Success per slice, confusion matrices, and against another evaluation slice by slice")
 def slices(evaluation_id: EvaluationId, jobs: Jobs,
-           versus: Annotated[int | None, Query(ge=1, description="another evaluation of the same environments: "
-                                                "fixed and broken episodes per slice, sign test")] = None) -> dict:
+           versus: Annotated[Id | None, Query(description="another evaluation of the same environments: fixed and "
+                                               "broken episodes per slice, sign test")] = None) -> dict:
     return jobs.analyses.analysis(evaluation_id, versus)
 
 
@@ -39,7 +39,10 @@ def slice_episodes(evaluation_id: EvaluationId, jobs: Jobs, where: Where = [],  
                    matrix: Annotated[str | None, Query(description=f"a confusion matrix: {', '.join(CONFUSIONS)}")]
                    = None, asked: Annotated[Text | None, Query(max_length=200)] = None,
                    read: Annotated[Text | None, Query(max_length=200)] = None,
-                   ambiguous: bool | None = None) -> list[EpisodeModel]:
+                   ambiguous: bool | None = None,
+                   versus: Annotated[Id | None, Query(description="a number of the versus table: only the "
+                                                      "environments both evaluations flew")] = None
+                   ) -> list[EpisodeModel]:
     criteria = {}
     for item in where:
         attribute, sep, value = item.partition(":")
@@ -51,7 +54,7 @@ def slice_episodes(evaluation_id: EvaluationId, jobs: Jobs, where: Where = [],  
         if matrix is None or asked is None or read is None:
             raise RunnerError("a confusion cell needs matrix, asked and read")
         cell = (matrix, asked, read)
-    return [episode_model(e) for e in jobs.analyses.episodes(evaluation_id, criteria, cell, ambiguous)]
+    return [episode_model(e) for e in jobs.analyses.episodes(evaluation_id, criteria, cell, ambiguous, versus)]
 
 
 @router.get("/api/shipped-evaluations", responses=responses(503),

@@ -88,7 +88,8 @@ class Analyses:
 
     def __init__(self, db: Database, config: RunConfig, checkpoints: Path):
         self.db, self.config, self.checkpoints = db, config, checkpoints
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the analyses kept
+        self._importing = threading.Lock()  # two tabs asking for one shipped evaluation at once import it once
         self._kept: dict[tuple[int, int | None], dict] = {}
 
     # -- rows ---------------------------------------------------------------------------------------------------
@@ -101,7 +102,7 @@ class Analyses:
     def rows(self, e: Evaluation) -> list[dict]:
         """The evaluation's episodes as `slices` reads them, with their facts (computed and kept where missing)."""
         episodes = self.db.episodes(e.id)
-        kept = self.db.facts(e.id)
+        kept = {env: f for env, f in self.db.facts(e.id).items() if slices.valid_facts(f)}  # else computed again
         missing = {}
         config = self._config(e)
         for row in episodes:
@@ -147,8 +148,10 @@ class Analyses:
         return out
 
     def episodes(self, evaluation_id: int, criteria: dict[str, str] | None = None,
-                 cell: tuple[str, str, str] | None = None, ambiguous: bool | None = None) -> list[EpisodeRow]:
-        """The episodes behind a number of the analysis: `slices.select`, as the record's rows, in the order flown."""
+                 cell: tuple[str, str, str] | None = None, ambiguous: bool | None = None,
+                 versus_id: int | None = None) -> list[EpisodeRow]:
+        """The episodes behind a number of the analysis: `slices.select`, as the record's rows, in the order flown;
+        with `versus_id` (a number of the versus table) only those of environments both evaluations flew."""
         for attribute in criteria or {}:
             if attribute not in slices.ATTRIBUTES:
                 raise RunnerError(f"no attribute {attribute!r}; choose from {', '.join(slices.ATTRIBUTES)}")
@@ -156,12 +159,16 @@ class Analyses:
             raise RunnerError(f"no confusion matrix {cell[0]!r}; choose from {', '.join(slices.CONFUSIONS)}")
         e = self.evaluation(evaluation_id)
         chosen = set(slices.select(self.rows(e), criteria, cell, ambiguous))
+        if versus_id is not None:
+            chosen &= set(self.evaluation(versus_id).env_ids)
         return [row for row in self.db.episodes(e.id) if row.env_id in chosen]
 
     # -- shipped evaluations ----------------------------------------------------------------------------------
-    def shipped(self) -> list[dict]:
-        """The shipped evaluations, each with the id of its evaluation in the record once imported (else None)."""
-        imported = {e.folder: e.id for e in self.db.evaluations() if e.source == SHIPPED_SOURCE and e.folder}
+    def shipped(self, evaluations: list[Evaluation] | None = None) -> list[dict]:
+        """The shipped evaluations, each with the id of its evaluation in the record once imported (else None), from
+        the record's `evaluations` (read when not given)."""
+        evaluations = self.db.evaluations() if evaluations is None else evaluations
+        imported = {e.folder: e.id for e in evaluations if e.source == SHIPPED_SOURCE and e.folder}
         return [{"key": s.key, "label": s.label, "split": s.split, "evaluation_id": imported.get(str(s.path))}
                 for s in shipped(self.checkpoints)]
 
@@ -171,7 +178,7 @@ class Analyses:
         if key not in found:
             raise NotFound(f"no shipped evaluation {key!r}; choose from {', '.join(found) or 'none'}")
         s = found[key]
-        with self._lock:  # two tabs asking at once import it once
+        with self._importing:
             for e in self.db.evaluations():
                 if e.source == SHIPPED_SOURCE and e.folder == str(s.path):
                     return e
@@ -180,16 +187,16 @@ class Analyses:
     def _import(self, s: Shipped) -> Evaluation:
         try:
             results = json.loads(s.path.read_text())
-            episodes = results["episodes"]
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise RunnerError(f"{s.path} is not a readable evaluation: {err}") from err
-        rows = slices.with_facts(results)  # the facts the file keeps, else computed here
-        episodes = [EpisodeRow(
-            evaluation_id=0, position=position, env_id=row["env_id"], instruction=ep["instruction"],
-            landmark=row["landmark"], side=row["side"], ambiguous=row["ambiguous"], success=row["success"],
-            landmark_success=row["landmark_success"], goal_distance=float(ep["goal_distance"]), steps=row["steps"],
-            stopped=row["stopped"], final_x=float(ep["final_x"]), final_y=float(ep["final_y"]), stage=row["stage"],
-            attribution=None, recording=None) for position, (ep, row) in enumerate(zip(episodes, rows, strict=True))]
+            rows = slices.with_facts(results)  # the facts the file keeps, else computed here
+            episodes = [EpisodeRow(
+                evaluation_id=0, position=position, env_id=row["env_id"], instruction=ep["instruction"],
+                landmark=row["landmark"], side=row["side"], ambiguous=row["ambiguous"], success=row["success"],
+                landmark_success=row["landmark_success"], goal_distance=float(ep["goal_distance"]),
+                steps=row["steps"], stopped=row["stopped"], final_x=float(ep["final_x"]), final_y=float(ep["final_y"]),
+                stage=row["stage"], attribution=None, recording=None)
+                for position, (ep, row) in enumerate(zip(results["episodes"], rows, strict=True))]
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as err:
+            raise RunnerError(f"{s.path} is not a readable evaluation: {type(err).__name__}: {err}") from err
         now = time.time()
         eid = self.db.add_whole_evaluation(  # all or nothing: a server killed meanwhile leaves no half evaluation
             {"status": FINISHED, "created": now, "started": now, "finished": now, "system": s.system,

@@ -79,7 +79,7 @@ class AnalysisTab:
         for e in reversed(evaluations):
             if e.status == FINISHED:
                 choices[evaluation_label(e)] = ("evaluation", e.id)
-        for s in self.jobs.analyses.shipped():
+        for s in self.jobs.analyses.shipped(evaluations):
             if s["evaluation_id"] is None:
                 choices[SHIPPED + s["label"]] = ("shipped", s["key"])
         self._analysable = choices
@@ -136,7 +136,7 @@ class AnalysisTab:
             return
         try:
             self.analysis_rows = self.jobs.analyses.episodes(self.analysis["evaluation"]["id"], found["where"],
-                                                             found["cell"], found["ambiguous"])
+                                                             found["cell"], found["ambiguous"], found["versus"])
         except RunnerError as err:
             self.an_note.content = error_html(html.escape(str(err)))
             return

@@ -249,9 +249,11 @@ class FailuresTab:
                        "see its maps at any step." if same else
                        f"it differs from the evaluation ({episode.result.steps} steps, ended {gap:.2f} m away): the "
                        f"server's settings differ from the evaluation's."))
-            if self.replay_step is not None:
+            if self.replay_step is not None and same:
                 self.viewer._events.put(CursorMoved(self.replay_step))
                 note += f" Shown at step {self.replay_step}, where it went wrong."
+            elif self.replay_step is not None:
+                note += f" It went wrong at step {self.replay_step} of the evaluation's flight, not of this one."
         self.replay_detail.content = episode_html(row, note)
 
     def _chosen_episodes(self) -> int | None:

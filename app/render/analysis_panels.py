@@ -23,10 +23,11 @@ MATRICES = {f"{what} ({kind})": (name, kind == "ambiguous") for name, what in (
 
 
 def pick(criteria: Mapping[str, str] | None = None, cell: tuple[str, str, str] | None = None,
-         ambiguous: bool | None = None, title: str = "") -> str:
-    """What a click asks for, as the hidden field carries it (JSON)."""
+         ambiguous: bool | None = None, title: str = "", versus: int | None = None) -> str:
+    """What a click asks for, as the hidden field carries it (JSON); `versus`: a number of the versus table, which
+    counts only the environments both evaluations flew."""
     return json.dumps({"where": dict(criteria or {}), "cell": list(cell) if cell else None, "ambiguous": ambiguous,
-                       "title": title})
+                       "title": title, "versus": versus})
 
 
 def parse_pick(value: str) -> dict | None:
@@ -41,7 +42,9 @@ def parse_pick(value: str) -> dict | None:
     return {"where": {str(k): str(v) for k, v in found["where"].items()},
             "cell": tuple(str(x) for x in cell) if isinstance(cell, list) and len(cell) == 3 else None,
             "ambiguous": found.get("ambiguous") if isinstance(found.get("ambiguous"), bool) else None,
-            "title": str(found.get("title", ""))}
+            "title": str(found.get("title", "")),
+            "versus": found["versus"] if isinstance(found.get("versus"), int) and not isinstance(found["versus"], bool)
+            else None}
 
 
 def _button(inner: str, picked: str, tip: str, style: str = "") -> str:
@@ -65,11 +68,12 @@ def headline_html(analysis: Mapping[str, Any]) -> str:
              f"({100.0 * won / max(1, n):.1f} %). Bars: success with its 95 % interval; click any bar, cell or row "
              "for its episodes."]
     read = analysis["readings"]
-    if read["grounded"] == 0 and read["goal_at"] == 0:
-        lines.append("No map readings (grounded landmark, goal peak): this evaluation kept no maps.")
-    elif read["grounded"] < n:
-        lines.append(f"Map readings for {read['grounded']} of {n} episodes (the others kept no maps, or the model has "
-                     "no trained head to read).")
+    found = max(read["grounded"], read["goal_at"])
+    if found == 0:
+        lines.append("No map readings (grounded landmark, goal peak): this evaluation kept no maps, or its model has "
+                     "no trained head to read them with.")
+    elif found < n:
+        lines.append(f"Map readings for {found} of {n} episodes (the others kept no maps).")
     lines += [f"&#9888; {html.escape(w)}" for w in analysis.get("warnings", [])]
     return f'<div style="{STYLE}">' + "<br>".join(lines) + "</div>"
 
@@ -166,7 +170,8 @@ def versus_html(analysis: Mapping[str, Any]) -> str:
         inner = (f"{marker}{html.escape(where)} &middot; {s['n']} episodes &middot; {s['rate']:.0f} % vs "
                  f"{s['rate_versus']:.0f} % &middot; fixed {s['fixed']}, broken {s['broken']}, p {s['p']:.2g} "
                  f"(corrected {s['p_adjusted']:.2g})")
-        rows.append(_button(inner, pick(s["slice"], title=where), "click for these episodes (of the first evaluation)",
+        rows.append(_button(inner, pick(s["slice"], title=where, versus=o["id"]),
+                            "click for these episodes (as the first evaluation flew them)",
                             "padding:2px 0;border-bottom:1px solid #eee"))
     if not rows:
         rows.append("No slice of five or more paired episodes differs.")

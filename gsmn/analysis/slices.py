@@ -9,13 +9,15 @@ readings of the model's maps at the end of the episode (from its attribution, gs
     landmarks     how many landmarks its world holds
     distance      start to goal in a straight line (m)
     demonstration the demonstration path's length (m; gsmn.task.demo)
-    stopped_at    the landmark the drone ended at (its region: closer than the success radius; "no landmark" when it
-                  ended in none) and the side of it (stopped_side, as the metric reads sides: gsmn.task.metrics)
+    stopped_at    the landmark the drone ended at (stopped or not): the named landmark whenever it ended in its region
+                  (closer than the success radius), else the nearest whose region holds it, "no landmark" when none;
+                  the side of it (stopped_side, as the metric reads sides: gsmn.task.metrics) and which it is
+                  (stopped_which: the named one, another of the same name, another landmark, none)
     reached_side  the side of the named landmark the drone ended on
     grounded      the landmark the relevance map singles out: the one of the world whose cell has the highest
                   P(named) (the grounding head's reading); None where the model has no trained grounding head
-    goal_at       the landmark nearest the goal map's peak (its region, else "no landmark") and the side of it
-                  (goal_side); None where the model has no trained goal head
+    goal_at       the landmark whose region holds the goal map's peak, read as stopped_at is, and the side of it
+                  (goal_side, goal_which); None where the model has no trained goal head
     went_wrong    the step from which the attributed stage's map stayed below its agreement with the ground truth
                   (gsmn.analysis.truth), None where not known
 
@@ -59,11 +61,13 @@ ATTRIBUTES: dict[str, str] = {
     "outcome": "outcome",
     "grounding": "relevance map singled out",
     "goal": "goal map's peak",
-    "stopped": "stopped at",
+    "stopped": "ended at",
 }
 ENVIRONMENT = ("landmark", "side", "ambiguous", "landmarks", "distance", "demonstration")
+FACTS_VERSION = 2  # facts of another version are computed again (2: the landmark ended at is the named one first)
+WHICH = ("named", "same name", "other", "none")
 CONFUSIONS = {"grounded": "named landmark -> landmark the relevance map singles out",
-              "stopped_at": "named landmark -> landmark the drone stopped at",
+              "stopped_at": "named landmark -> landmark the drone ended at",
               "side": "side asked -> side of the named landmark the drone ended on"}
 DISTANCE_BINS = (10.0, 20.0, 30.0)  # m: "under 10 m", "10-20 m", "20-30 m", "30 m or more"
 DEMONSTRATION_BINS = (15.0, 25.0, 35.0)
@@ -73,18 +77,20 @@ Z95 = 1.959963984540054
 
 
 # -- per episode ----------------------------------------------------------------------------------------------------
-def _nearest_landmark(world, xy: tuple[float, float], radius: float):
-    """The landmark whose region (closer than `radius` to its centre) holds xy, the nearest if several; else None."""
-    found = [(math.dist(xy, (lm.x, lm.y)), i) for i, lm in enumerate(world.landmarks)]
-    distance, i = min(found)
-    return world.landmarks[i] if distance < radius else None
-
-
-def _place(world, xy: tuple[float, float], radius: float) -> tuple[str, str | None]:
-    landmark = _nearest_landmark(world, xy, radius)
-    if landmark is None:
-        return NO_LANDMARK, None
-    return landmark.noun_phrase, side_of((landmark.x, landmark.y), (world.start_x, world.start_y), xy)
+def _place(world, xy: tuple[float, float], radius: float, named_index: int) -> tuple[str, str | None, str]:
+    """Which landmark's region (closer than `radius` to its centre) holds xy: the named landmark's whenever it does,
+    else the nearest one's; its noun phrase, the side of it xy lies on (as the metric reads sides), and which it is
+    (WHICH: the named landmark, another of the same name, another landmark, or none)."""
+    named = world.landmarks[named_index]
+    start = (world.start_x, world.start_y)
+    if math.dist(xy, (named.x, named.y)) < radius:
+        return named.noun_phrase, side_of((named.x, named.y), start, xy), "named"
+    distance, i = min((math.dist(xy, (lm.x, lm.y)), i) for i, lm in enumerate(world.landmarks))
+    if distance >= radius:
+        return NO_LANDMARK, None, "none"
+    lm = world.landmarks[i]
+    return lm.noun_phrase, side_of((lm.x, lm.y), start, xy), "same name" if lm.noun_phrase == named.noun_phrase \
+        else "other"
 
 
 def episode_facts(episode: Mapping[str, Any], world, attribution: Mapping[str, Any] | None,
@@ -95,33 +101,50 @@ def episode_facts(episode: Mapping[str, Any], world, attribution: Mapping[str, A
     named = world.landmarks[int(episode["landmark_index"])]
     start = (world.start_x, world.start_y)
     final = (float(episode["final_x"]), float(episode["final_y"]))
-    stopped_at, stopped_side = _place(world, final, success_radius)
+    stopped_at, stopped_side, stopped_which = _place(world, final, success_radius, int(episode["landmark_index"]))
     if demonstration is None:
         demonstration = demonstration_length(world, (float(episode["goal_x"]), float(episode["goal_y"])))
     facts: dict[str, Any] = {
-        "landmarks": len(world.landmarks),
+        "version": FACTS_VERSION, "landmarks": len(world.landmarks),
         "distance": round(math.dist(start, (float(episode["goal_x"]), float(episode["goal_y"]))), 2),
         "demonstration": None if demonstration is None else round(demonstration, 2),
-        "stopped_at": stopped_at, "stopped_side": stopped_side,
+        "stopped_at": stopped_at, "stopped_side": stopped_side, "stopped_which": stopped_which,
         "reached_side": side_of((named.x, named.y), start, final),
-        "grounded": None, "goal_at": None, "goal_side": None, "went_wrong": None}
+        "grounded": None, "goal_at": None, "goal_side": None, "goal_which": None, "went_wrong": None}
     if attribution:
-        facts.update(map_readings(attribution, world, named.noun_phrase, success_radius))
+        facts.update(map_readings(attribution, world, int(episode["landmark_index"]), success_radius))
     return facts
 
 
-def map_readings(attribution: Mapping[str, Any], world, named: str, success_radius: float = 6.0) -> dict[str, Any]:
-    """`grounded`, `goal_at`, `goal_side` and `went_wrong` from an episode's attribution (its `to_dict()`); `named`
-    the noun phrase the instruction names."""
-    out: dict[str, Any] = {"grounded": None, "goal_at": None, "goal_side": None, "went_wrong": went_wrong(attribution)}
+def map_readings(attribution: Mapping[str, Any], world, named_index: int, success_radius: float = 6.0
+                 ) -> dict[str, Any]:
+    """`grounded`, `goal_at`, `goal_side`, `goal_which` and `went_wrong` from an episode's attribution (its
+    `to_dict()`); `named_index` the landmark the instruction names. The grounding head's reading puts the named
+    landmark against the landmarks of other names only (gsmn.attribution), so `grounded` is its name or another."""
+    named = world.landmarks[named_index].noun_phrase
+    out: dict[str, Any] = {"grounded": None, "goal_at": None, "goal_side": None, "goal_which": None,
+                           "went_wrong": went_wrong(attribution)}
     if attribution.get("grounded") is not None:  # a trained grounding head: the highest P(named) of the landmarks
         other, p_other = attribution.get("other_landmark"), attribution.get("p_named_other")
         beaten = other is not None and p_other is not None and p_other > attribution["p_named"]
         out["grounded"] = other if beaten else named
     if attribution.get("goal_right") is not None:  # a trained goal head
-        out["goal_at"], out["goal_side"] = _place(
-            world, (float(attribution["goal_peak_x"]), float(attribution["goal_peak_y"])), success_radius)
+        out["goal_at"], out["goal_side"], out["goal_which"] = _place(
+            world, (float(attribution["goal_peak_x"]), float(attribution["goal_peak_y"])), success_radius, named_index)
     return out
+
+
+def valid_facts(facts: Any) -> bool:
+    """Whether kept facts are of this version and of the types read here (damaged or older ones are computed again)."""
+    if not isinstance(facts, dict) or facts.get("version") != FACTS_VERSION:
+        return False
+    numbers = ("distance", "demonstration")
+    names = ("stopped_at", "stopped_side", "stopped_which", "reached_side", "grounded", "goal_at", "goal_side",
+             "goal_which")
+    return (isinstance(facts.get("landmarks"), int) and isinstance(facts.get("stopped_at"), str)
+            and all(facts.get(k) is None or isinstance(facts[k], (int, float)) for k in numbers)
+            and all(facts.get(k) is None or isinstance(facts[k], str) for k in names)
+            and (facts.get("went_wrong") is None or isinstance(facts["went_wrong"], int)))
 
 
 def went_wrong(attribution: Mapping[str, Any]) -> int | None:
@@ -157,13 +180,16 @@ def _binned(x: float | None, bins: Sequence[float], unit: str) -> str:
     return f"{bins[-1]:g} {unit} or more"
 
 
-def _against(read: str | None, side: str | None, named: str, asked: str) -> str:
-    """A map reading or the place stopped at, against what the instruction asked."""
+def _against(read: str | None, side: str | None, which: str | None, named: str, asked: str) -> str:
+    """A map reading or the place ended at, against what the instruction asked (`which`: WHICH, None for the
+    grounded landmark, which is never another of the named landmark's name)."""
     if read is None:
         return NOT_READ
     if read == NO_LANDMARK:
         return "no landmark"
-    if read != named:
+    if which == "same name":
+        return "another landmark of the same name"
+    if read != named or which == "other":
         return "another landmark"
     return "the named landmark" if side is None else (
         "the named landmark, side asked" if side == asked else "the named landmark, another side")
@@ -191,9 +217,9 @@ def attribute_values(row: Mapping[str, Any]) -> dict[str, str]:
         "stage": SUCCESS if row["success"] else (row.get("stage") or NOT_READ),
         "went_wrong": SUCCESS if row["success"] else _binned(step, STEP_BINS, "steps").replace(" steps", ""),
         "outcome": outcome(row),
-        "grounding": _against(facts.get("grounded"), None, named, asked),
-        "goal": _against(facts.get("goal_at"), facts.get("goal_side"), named, asked),
-        "stopped": _against(facts["stopped_at"], facts.get("stopped_side"), named, asked)
+        "grounding": _against(facts.get("grounded"), None, None, named, asked),
+        "goal": _against(facts.get("goal_at"), facts.get("goal_side"), facts.get("goal_which"), named, asked),
+        "stopped": _against(facts["stopped_at"], facts.get("stopped_side"), facts.get("stopped_which"), named, asked)
         if "stopped_at" in facts else NOT_READ}
 
 
@@ -256,16 +282,27 @@ def crossed(rows: Sequence[Mapping[str, Any]], first: str, second: str,
     return out
 
 
+def read_of(row: Mapping[str, Any], matrix: str) -> tuple[str, str | None]:
+    """What a confusion matrix counts for an episode: (asked, read), read None where the episode has no reading.
+    The landmark ended at, when another of the named landmark's name, reads "another NAME"."""
+    facts = row.get("facts") or {}
+    if matrix == "side":
+        return row["side"], facts.get("reached_side")
+    read = facts.get(matrix)
+    if matrix == "stopped_at" and read is not None and facts.get("stopped_which") == "same name":
+        read = f"another {read}"
+    return row["landmark"], read
+
+
 def confusion(rows: Iterable[Mapping[str, Any]]) -> dict[str, dict[str, dict[str, int]]]:
     """{"grounded" | "stopped_at" | "side": {named or asked: {read: count}}} over the rows given (episodes without
     the reading are left out of that matrix)."""
     out: dict[str, dict[str, Counter]] = {name: {} for name in CONFUSIONS}
     for row in rows:
-        facts = row.get("facts") or {}
-        for name, key, asked in (("grounded", "grounded", row["landmark"]), ("stopped_at", "stopped_at",
-                                 row["landmark"]), ("side", "reached_side", row["side"])):
-            if facts.get(key) is not None:
-                out[name].setdefault(asked, Counter())[facts[key]] += 1
+        for name in CONFUSIONS:
+            asked, read = read_of(row, name)
+            if read is not None:
+                out[name].setdefault(asked, Counter())[read] += 1
     return {name: {asked: dict(reads.most_common()) for asked, reads in sorted(m.items())}
             for name, m in out.items()}
 
@@ -275,8 +312,6 @@ def select(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, str] | None
     """The env ids of the episodes behind a number: those whose attributes have the given values (`criteria`,
     attribute -> value), and/or those counted in a confusion cell (`cell`: matrix, named or asked, read) with
     `ambiguous` saying which instructions the matrix counted (None: all)."""
-    keys = {"grounded": ("landmark", "grounded"), "stopped_at": ("landmark", "stopped_at"),
-            "side": ("side", "reached_side")}
     out = []
     for row in rows:
         if ambiguous is not None and bool(row["ambiguous"]) != ambiguous:
@@ -285,10 +320,8 @@ def select(rows: Sequence[Mapping[str, Any]], criteria: Mapping[str, str] | None
             v = attribute_values(row)
             if any(v.get(a) != value for a, value in criteria.items()):
                 continue
-        if cell is not None:
-            asked_key, read_key = keys[cell[0]]
-            if row[asked_key] != cell[1] or (row.get("facts") or {}).get(read_key) != cell[2]:
-                continue
+        if cell is not None and read_of(row, cell[0]) != (cell[1], cell[2]):
+            continue
         out.append(int(row["env_id"]))
     return out
 
@@ -400,7 +433,7 @@ def with_facts(results: Mapping[str, Any], record=None, checkpoint=None, log=Non
     rows = []
     for episode in results["episodes"]:
         row = normalise(episode)
-        if row["facts"] is None or (attribution_of is not None and row["facts"].get("grounded") is None):
+        if not valid_facts(row["facts"]) or (attribution_of is not None and row["facts"].get("grounded") is None):
             world = world_for_env(row["env_id"], config.world)
             attribution = attribution_of(episode) if attribution_of is not None else None
             row["facts"] = episode_facts(episode, world, attribution, config.task.success_radius)
