@@ -158,7 +158,8 @@ class AnalysisTab:
                 button.visible = False
         what = f"**{html.escape(self.analysis_title)}**: " if getattr(self, "analysis_title", "") else ""
         self.an_note.content = (f"{what}{n} episode{'s' if n != 1 else ''}; page {self.analysis_page + 1} of "
-                                f"{pages}. Click one to fly it again in the live view, at the step it went wrong."
+                                f"{pages}. Click one to fly it again in the live view (shown at the step it went "
+                                "wrong, where that is known)."
                                 if n else "Click a bar, a cell or a row above: its episodes are listed here.")
 
     def _page_analysis(self, button: str) -> None:
