@@ -126,6 +126,40 @@ def test_the_expert_flies_a_world_with_a_landmark_moved(server):
     assert math.dist(last, goal) < math.dist(first, goal) - 3, "the expert flew toward the moved goal"
 
 
+def test_a_fork_edits_the_world_at_its_step_and_the_drone_keeps_its_state(server):
+    """The expert's flight in environment 70, forked at step 12 with the pumpkin moved where the box stood: the
+    fork's first 12 steps are the original's, it goes on from the drone's exact state at step 12 toward the moved
+    goal, and says what was changed; a landmark put where the drone then is is refused."""
+    from gsmn.config import preset
+    from gsmn.task.rollout import task_for_env
+
+    client = server["client"]
+    task = task_for_env(70, preset("tiny"))
+    original = finished(client, client.post("/api/episodes", json={"env_id": 70, "policy": "expert"}).json()["id"])
+    box = next(k for k, lm in enumerate(task.world.landmarks) if lm.noun_phrase == "box")
+    edits = [{"op": "remove", "landmark": box}, {"op": "move", "landmark": task.instruction.landmark_index,
+                                                  "x": task.world.landmarks[box].x, "y": task.world.landmarks[box].y}]
+    forked = client.post(f"/api/episodes/{original['id']}/fork", json={"step": 12, "world_edits": edits})
+    assert forked.status_code == 201, forked.text
+    fork = finished(client, forked.json()["id"])
+    assert fork["world_edits"] == edits and fork["fork_of"] == original["id"] and fork["fork_step"] == 12
+    assert abs(fork["goal_x"] - original["goal_x"]) + abs(fork["goal_y"] - original["goal_y"]) > 5
+    assert fork["status"] == "finished", fork["error"]
+    a = client.get(f"/api/episodes/{original['id']}/steps").json()["steps"]
+    b = client.get(f"/api/episodes/{fork['id']}/steps").json()["steps"]
+    assert [(s["x"], s["y"]) for s in b[:12]] == [(s["x"], s["y"]) for s in a[:12]]
+    assert (b[12]["x"], b[12]["y"], b[12]["z"]) == pytest.approx((a[12]["x"], a[12]["y"], a[12]["z"]), abs=1e-6)
+    goal = (fork["goal_x"], fork["goal_y"])
+    assert math.dist((b[-1]["x"], b[-1]["y"]), goal) < math.dist((a[-1]["x"], a[-1]["y"]), goal), \
+        "the fork flew toward the moved goal"
+    at = (a[12]["x"], a[12]["y"])
+    k = 3.0 / math.dist(at, (15.0, 15.0))  # 3 m from the drone toward the middle of the field
+    near = (at[0] + k * (15.0 - at[0]), at[1] + k * (15.0 - at[1]))
+    refused = client.post(f"/api/episodes/{original['id']}/fork", json={"step": 12, "world_edits": [
+        {"op": "move", "landmark": task.instruction.landmark_index, "x": near[0], "y": near[1]}]})
+    assert refused.status_code == 422 and "would stand on the drone" in refused.json()["detail"]
+
+
 def test_the_model_as_a_mirror_ensemble(server):
     client = server["client"]
     created = client.post("/api/episodes", json={"env_id": 72, "policy": "mirror"}).json()

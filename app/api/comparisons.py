@@ -12,10 +12,20 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from app.api.deps import COMMAND_TIMEOUT, TheRunner
-from app.api.models import MAX_STEP, EpisodeCreated, EpisodeId, EpisodeSummary, Policy, summary
+from app.api.models import (
+    MAX_STEP,
+    EpisodeCreated,
+    EpisodeId,
+    EpisodeSummary,
+    Policy,
+    WorldEditModel,
+    summary,
+    world_edits_of,
+)
 from app.api.schema import EnvId, Strict, Text, path_id, responses
 from app.live.commands import NotFound
 from app.live.compare import Comparison, ForkEpisode, PolicySpec, StartComparison
+from gsmn.task.edits import MAX_EDITS
 
 router = APIRouter()
 ComparisonId = Annotated[int, path_id("comparison")]
@@ -48,6 +58,9 @@ class ForkRequest(Strict):
     checkpoint: Text | None = Field(
         None, min_length=1, max_length=1000, description="omitted: the original's model")
     policy: Policy | None = Field(None, description="omitted: the original's")
+    world_edits: list[WorldEditModel] = Field(
+        [], max_length=MAX_EDITS, description="edits made to the original's world at this step, as on POST "
+        "/api/episodes (the drone keeps its exact state; a landmark may not be put where the drone then is)")
 
 
 class ComparisonModel(BaseModel):
@@ -94,6 +107,6 @@ def get_comparison(comparison_id: ComparisonId, runner: TheRunner) -> Comparison
              summary="Fly on from step t of a finished episode, with another instruction, policy or checkpoint")
 def fork(episode_id: EpisodeId, request: ForkRequest, runner: TheRunner):
     e = runner.call(ForkEpisode(episode_id, request.step, request.instruction, request.checkpoint,
-                                request.policy), COMMAND_TIMEOUT)
+                                request.policy, world_edits=world_edits_of(request.world_edits)), COMMAND_TIMEOUT)
     return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
                           policy=e.policy)

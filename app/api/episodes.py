@@ -15,25 +15,16 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from app.api.deps import COMMAND_TIMEOUT, MaybeKeeper, TheRunner, ViewerUrl, episode_or_404
-from app.api.models import EpisodeCreated, EpisodeId, EpisodeSummary, Policy, summary
+from app.api.models import EpisodeCreated, EpisodeId, EpisodeSummary, Policy, WorldEditModel, summary, world_edits_of
 from app.api.schema import EnvId, Strict, Text, responses
-from app.live.commands import MAX_ENV_ID, CancelEpisode, RunnerError, StartEpisode
+from app.live.commands import MAX_ENV_ID, CancelEpisode, StartEpisode
 from app.live.models import FIRST_PERSON_KINDS
 from app.render.truth import step_figures, went_wrong
-from gsmn.task.edits import MAX_EDITS, EditError, parse_edits
+from gsmn.task.edits import MAX_EDITS
 
 router = APIRouter()  # health, checkpoints, queue an episode
 in_memory = APIRouter()  # the episode list without a keeper
 episode_router = APIRouter()  # one episode: its summary, cancelling it, its steps
-
-
-class WorldEditModel(Strict):
-    op: Literal["move", "remove", "add"]
-    landmark: int | None = Field(None, ge=0, le=63, description="move, remove: the landmark's index in the world")
-    x: float | None = Field(None, allow_inf_nan=False, description="move, add: where its centre goes (m)")
-    y: float | None = Field(None, allow_inf_nan=False)
-    noun_phrase: Text | None = Field(None, max_length=60, description="add: a landmark of the catalogue, e.g. 'tank'")
-    yaw: float | None = Field(None, allow_inf_nan=False, description="add: its heading (rad)")
 
 
 class EpisodeRequest(Strict):
@@ -137,12 +128,8 @@ def checkpoints(runner: TheRunner) -> list[CheckpointModel]:
 @router.post("/api/episodes", response_model=EpisodeCreated, status_code=201,
              responses=responses(400, 409, 422, 503), summary="Queue an episode; it flies after those before it")
 def create_episode(request: EpisodeRequest, runner: TheRunner) -> EpisodeCreated:
-    try:
-        edits = parse_edits([w.model_dump(exclude_none=True) for w in request.world_edits])
-    except EditError as err:
-        raise RunnerError(str(err)) from err
     e = runner.call(StartEpisode(request.env_id, request.instruction, request.policy, request.checkpoint,
-                                 world_edits=edits), COMMAND_TIMEOUT)
+                                 world_edits=world_edits_of(request.world_edits)), COMMAND_TIMEOUT)
     return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
                           typed_instruction=e.typed, policy=e.policy)
 

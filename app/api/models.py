@@ -11,8 +11,10 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
-from app.api.schema import path_id
+from app.api.schema import Strict, Text, path_id
+from app.live.commands import RunnerError
 from app.live.recording import Episode, EpisodeResult
+from gsmn.task.edits import EditError, parse_edits
 
 MAX_STEP = 100_000  # more than any horizon
 EpisodeId = Annotated[int, path_id("episode")]
@@ -41,6 +43,23 @@ class ResultModel(BaseModel):
     final_x: float
     final_y: float
     stop_probability: float | None = Field(description="the model's P(STOP) at the last step")
+
+
+class WorldEditModel(Strict):
+    op: Literal["move", "remove", "add"]
+    landmark: int | None = Field(None, ge=0, le=63, description="move, remove: the landmark's index in the world")
+    x: float | None = Field(None, allow_inf_nan=False, description="move, add: where its centre goes (m)")
+    y: float | None = Field(None, allow_inf_nan=False)
+    noun_phrase: Text | None = Field(None, max_length=60, description="add: a landmark of the catalogue, e.g. 'tank'")
+    yaw: float | None = Field(None, allow_inf_nan=False, description="add: its heading (rad)")
+
+
+def world_edits_of(models: list[WorldEditModel]) -> tuple:
+    """The request's world edits, checked (gsmn.task.edits.parse_edits); a bad one is a RunnerError (422)."""
+    try:
+        return parse_edits([w.model_dump(exclude_none=True) for w in models])
+    except EditError as err:
+        raise RunnerError(str(err)) from err
 
 
 class EpisodeSummary(BaseModel):

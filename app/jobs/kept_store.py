@@ -166,7 +166,7 @@ class KeptStore(EpisodeStore):
         world = world_for_env(int(row["env_id"]), world_config)
         edits = parse_edits(task.get("world_edits", []))
         if edits:  # the world it flew: the same edits, made again
-            world = edit_world(world, edits, RunConfig(world=world_config))[0]
+            world = edit_world(world, edits, RunConfig(world=world_config), check=False)[0]
         instruction = Instruction(**task["instruction"])
         episode = Episode(id=int(row["id"]), task=Task(world, instruction, np.array(task["path"], np.float64)),
                           policy=row["policy"], system=row["system"], checkpoint=row["checkpoint"],

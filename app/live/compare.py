@@ -33,6 +33,7 @@ from app.live.commands import POLICIES, Command, Conflict, NotFound, RunnerError
 from app.live.flight import Flight, Unwind, task_for_text
 from app.live.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.edits import EditError, edit_world, edited_task
 from gsmn.task.fork import FlightSnapshots, Prefix
 from gsmn.task.rollout import Task, rollout_steps
 
@@ -65,6 +66,7 @@ class ForkEpisode(Command):
     checkpoint: str | None = None  # None: the original's model
     policy: str | None = None  # None: the original's
     preempt: bool = False
+    world_edits: tuple = ()  # gsmn.task.edits.WorldEdit made to the original's world at the fork's step
 
 
 # -- records --------------------------------------------------------------------------------------------------
@@ -79,6 +81,7 @@ class ForkPoint:
     same_model: bool  # the fork flies the model (and kind) that flew: its keyframes apply
     same_expert: bool  # the fork's expert follows the original expert's path: its progress applies
     expert_task: Task | None  # the path the fork's expert follows (from the fork point, for a new instruction)
+    world: Any = None  # the original's world (gsmn.world.spec.WorldSpec), where the model's memory is rebuilt
 
 
 @dataclass
@@ -164,21 +167,37 @@ class Comparisons:
         policy = c.policy or original.policy
         if policy not in POLICIES:
             raise RunnerError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
-        if c.instruction is None or not c.instruction.strip() or c.instruction.strip() == original.instruction:
-            task = original.task
-        else:
-            task = task_for_text(original.task.world, c.instruction, r.config)
+        task = self._fork_task(original, c)
         checkpoint = c.checkpoint
         if checkpoint is None and original.checkpoint is not None and original.checkpoint in r.models:
             checkpoint = original.checkpoint
         # checked with the original's instruction (whose path exists); the fork's own task replaces it
         episode = r._new_episode(original.env_id, original.instruction, policy, checkpoint, check_queue=not c.preempt)
-        episode.task = task
+        episode.task, episode.world_edits = task, tuple(c.world_edits)
         episode.fork = self._fork_point(original, episode, c.step)
         episode.steps = list(original.steps[:c.step])
         r.episodes.add(episode)
         r._enqueue(c, episode, episode)
         return episode
+
+    def _fork_task(self, original: Episode, c: ForkEpisode) -> Task:
+        """The fork's task: the original's, or another instruction, in the original's world or with `c.world_edits`
+        made to it at step t (a landmark may not be put on the drone where it is then)."""
+        r, typed = self.runner, c.instruction is not None and c.instruction.strip() not in ("", original.instruction)
+        if not c.world_edits:
+            return task_for_text(original.task.world, c.instruction, r.config) if typed else original.task
+        if original.world_edits:
+            raise RunnerError(f"episode {original.id} flies an edited world already: fork an episode of the "
+                              "environment's own world to edit it")
+        s = original.steps[c.step]
+        drone = (float(s.position[0]), float(s.position[1]))
+        try:
+            if typed:
+                return task_for_text(edit_world(original.task.world, c.world_edits, r.config, drone)[0],
+                                     c.instruction, r.config)
+            return edited_task(original.task, c.world_edits, r.config, drone)
+        except EditError as e:
+            raise RunnerError(str(e)) from e
 
     def _forkable(self, episode_id: int) -> tuple[Episode, int]:
         """The episode to fork, and how many of its steps have a simulator state to start from."""
@@ -205,7 +224,7 @@ class Comparisons:
         expert_task, same_expert = None, False
         if policy == "expert":
             prior = original.fork.expert_task if original.fork is not None else None
-            same_instruction = task.instruction.text == original.instruction
+            same_instruction = task.instruction.text == original.instruction and not episode.world_edits
             if same_instruction and original.policy == "expert" and snapshots.has_expert_progress(t):
                 expert_task, same_expert = prior or original.task, True
             else:
@@ -214,7 +233,7 @@ class Comparisons:
         prefix = Prefix(tuple((s.position[0], s.position[1], s.position[2], s.yaw) for s in steps),
                         tuple((s.v, s.omega, s.stop) for s in steps), tuple(s.stop_probability for s in steps),
                         tuple(None for _ in steps))
-        return ForkPoint(original.id, t, snapshots, prefix, same_model, same_expert, expert_task)
+        return ForkPoint(original.id, t, snapshots, prefix, same_model, same_expert, expert_task, original.task.world)
 
     # -- flying a pair ----------------------------------------------------------------------------------------
     def fly(self, comparison: Comparison) -> None:

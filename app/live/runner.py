@@ -394,7 +394,7 @@ class Runner:
             return None
         from gsmn.task.fork import fork_start
 
-        world = episode.task.world
+        world = fork.world or episode.task.world  # the flight's: the model's memory is rebuilt in it
         self.env.reset(world.env_id, episode.instruction, world)
         flight.policy.reset(episode.task)
         if flight.expert is not None and fork.expert_task is not None:  # its path: the original's, or from the fork
@@ -404,7 +404,7 @@ class Runner:
                 flight.expert.config = replace(self.config, expert=replace(self.config.expert, ramp_waypoints=0))
             flight.expert.reset(fork.expert_task)
         start = fork_start(self.env, fork.snapshots, fork.step, fork.prefix, flight.carrier, fork.same_model,
-                           flight.expert, fork.same_expert)
+                           flight.expert, fork.same_expert, episode.task.world)
         episode.snapshots = fork.snapshots.prefix(fork.step, fork.same_model)
         return start
 

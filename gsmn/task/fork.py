@@ -89,13 +89,16 @@ class Prefix:
 
 
 def fork_start(env: Env, snapshots: FlightSnapshots, t: int, prefix: Prefix, model: Any | None, same_model: bool,
-               expert: Any | None, same_expert: bool) -> RolloutStart:
+               expert: Any | None, same_expert: bool, world: Any | None = None) -> RolloutStart:
     """Put `env` and a policy already `reset` for the fork's task at step t of the flight `snapshots` recorded.
 
     `model`: the fork's part with a carried state (or None); `same_model`: it is the network (and the kind: plain or
     mirror ensemble) that flew, so its keyframes apply; else its state is rebuilt from step 0. `expert`: the fork's
     ExpertPolicy (or None); `same_expert`: it follows the original expert's path, so its progress is restored (an
-    expert with a new path starts on it at 0)."""
+    expert with a new path starts on it at 0). `world`: the fork's world where it differs from the flight's (world
+    edits at step t, gsmn.task.edits): `env` holds the flight's world, in which the model's memory of steps before
+    t is rebuilt; then the drone is put at step t in `world` (the landmarks are static, so the simulator's state is
+    the drone's alone and carries over)."""
     if not 0 <= t < len(snapshots.states):
         raise ValueError(f"step {t} is not recorded: the flight has steps 0 to {len(snapshots.states) - 1}")
     if len(prefix.trajectory) != t:
@@ -111,5 +114,7 @@ def fork_start(env: Env, snapshots: FlightSnapshots, t: int, prefix: Prefix, mod
     if expert is not None and same_expert:
         expert.expert.progress = snapshots.expert_progress_before(t)
     obs = env.set_state(snapshots.states[t])
+    if world is not None and world != env.world:
+        obs = env.move_to(world)
     return RolloutStart(obs, prefix.trajectory, prefix.actions, prefix.stop_probabilities,
                         prefix.member_stop_probabilities)

@@ -117,6 +117,19 @@ class Env:
         self._step = state.step
         return self.observe()
 
+    def move_to(self, world: WorldSpec) -> Observation:
+        """The drone, as it is, in another world of the same environment (its landmarks edited: gsmn.task.edits),
+        at the same step; observed there."""
+        from gsmn.world.sim import Simulator
+
+        assert self.sim is not None
+        drone, step = self.sim.drone_state(), self._step
+        self.sim.close()
+        self.sim = Simulator(world, self.config, self.catalogue)
+        self.sim.set_drone_state(drone)
+        self._step = step
+        return self.observe()
+
     def observe(self) -> Observation:
         sim = self.sim
         assert sim is not None

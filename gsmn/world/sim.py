@@ -261,6 +261,24 @@ class Simulator:
         mujoco.mj_setState(self.model, self.data, np.asarray(state, dtype=float), _STATE)
         mujoco.mj_forward(self.model, self.data)
 
+    def drone_state(self) -> dict[str, np.ndarray]:
+        """The physics state without the landmarks' (static bodies: their part is the zero forces applied to them),
+        which carries over to a world with other landmarks (`set_drone_state`): world edits at a fork's step."""
+        d = self.data
+        return {"time": np.array([d.time]), "qpos": d.qpos.copy(), "qvel": d.qvel.copy(), "act": d.act.copy(),
+                "qacc_warmstart": d.qacc_warmstart.copy(), "ctrl": d.ctrl.copy(), "qfrc_applied": d.qfrc_applied.copy(),
+                "xfrc_applied": d.xfrc_applied[self._drone_body].copy(), "mocap_pos": d.mocap_pos.copy(),
+                "mocap_quat": d.mocap_quat.copy()}
+
+    def set_drone_state(self, state: dict[str, np.ndarray]) -> None:
+        d = self.data
+        d.time = float(state["time"][0])
+        for name in ("qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_applied", "mocap_pos", "mocap_quat"):
+            getattr(d, name)[...] = state[name]
+        d.xfrc_applied[...] = 0.0
+        d.xfrc_applied[self._drone_body] = state["xfrc_applied"]
+        mujoco.mj_forward(self.model, d)
+
     def step(self, forward_velocity: float, yaw_rate: float) -> None:
         """Hold one (clipped) command for 1 / control_hz seconds of physics."""
         c = self.config.drone
