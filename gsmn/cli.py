@@ -427,13 +427,19 @@ def cmd_analyze_slices(args: argparse.Namespace) -> int:
         rows = slices.with_facts(results, Path(record) if record else None,
                                  Path(args.checkpoint) if args.checkpoint and path == args.results else None,
                                  log=lambda line: print(f"gsmn analyze slices: {line}", file=sys.stderr))
-        if args.keep_facts and path == args.results:  # kept in the file: the next reading computes nothing
+        if (args.keep_facts or args.write_compact) and path == args.results:
             by_env = {r["env_id"]: r for r in rows}
             for episode in results["episodes"]:
                 episode["facts"] = by_env[int(episode["env_id"])]["facts"]
                 if episode.get("stage") is None and not episode["success"]:
                     episode["stage"] = by_env[int(episode["env_id"])]["stage"]
-            write_json(Path(path), results)
+            if args.keep_facts:  # kept in the file: the next reading computes nothing
+                write_json(Path(path), results)
+            if args.write_compact:  # as the Table 2 programme ships its evaluations: no per-step fields
+                from gsmn.experiments.programme import PER_STEP
+
+                write_json(Path(args.write_compact), {**results, "episodes": [
+                    {k: v for k, v in e.items() if k not in PER_STEP} for e in results["episodes"]]})
         return rows
 
     other = rows_of(args.versus, args.versus_record) if args.versus else None
@@ -631,6 +637,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--versus-name", default=None, help="what to call OTHER (default: its folder's name)")
     a.add_argument("--keep-facts", action="store_true", help="write each episode's facts into RESULTS, so that a "
                    "later reading computes nothing")
+    a.add_argument("--write-compact", default=None, metavar="OUT", help="write RESULTS with its facts and stages "
+                   "and without the per-step fields (trajectories, actions), as the shipped evaluations are kept")
     a.set_defaults(func=cmd_analyze_slices)
     a = analyze.add_parser("dagger", help="DAggerFM runs side by side, an iteration a row")
     a.add_argument("runs", nargs="+", type=Path, help="DAggerFM run folders")

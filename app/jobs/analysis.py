@@ -7,8 +7,9 @@ Each episode's facts (its world's and its end's attributes, and the readings of 
 evaluation recorded before the table existed computed from its rows the first time it is analysed, then kept. An
 analysis of a finished evaluation is a pure function of its rows, so it is kept in memory once computed.
 
-The shipped evaluations (`shipped`: Table 2's on dev and Table 1's on test, checkpoints/table2/*/evaluation.json and
-table1.json) are offered without an evaluation run: asked for, one is imported into the record once, as a finished
+The shipped evaluations (`shipped`: the shipped GSMN's on Table 1's test environments, checkpoints/gsmn/table1.json,
+and Table 2's on dev and on test, checkpoints/table2/*/evaluation.json and table1.json) are offered without an
+evaluation run: asked for, one is imported into the record once, as a finished
 evaluation of its checkpoint (its episodes' attributed stages and facts as the file keeps them), so its episodes list,
 replay and analyse like any other.
 """
@@ -70,10 +71,14 @@ class Shipped:
 
 
 def shipped(root: Path) -> list[Shipped]:
-    """The evaluations shipped under `root` (the checkpoints folder), Table 2's systems in their table's order."""
+    """The evaluations shipped under `root` (the checkpoints folder): the shipped GSMN's on Table 1's test
+    environments (gsmn/table1.json, with its maps' readings), then Table 2's systems in their table's order."""
     from gsmn.experiments.recipe import SYSTEMS
 
     out = []
+    if (root / "gsmn" / "table1.json").is_file():
+        out.append(Shipped("gsmn/test", "GSMN, the shipped checkpoint: test environments (Table 1)",
+                           root / "gsmn" / "table1.json", root / "gsmn", "gsmn", "test"))
     for system in SYSTEMS:
         for name, (split, where) in SPLIT_NAMES.items():
             path = root / "table2" / system.name / name
