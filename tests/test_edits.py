@@ -11,7 +11,7 @@ import pytest
 
 from gsmn.config import preset
 from gsmn.task.baselines import ExpertPolicy
-from gsmn.task.edits import EditError, WorldEdit, edit_world, edited_task, parse_edits
+from gsmn.task.edits import EditError, WorldEdit, edit_world, edited_task, edits_from_text, parse_edits
 from gsmn.task.instructions import goal_position
 from gsmn.task.metrics import side_of
 from gsmn.task.rollout import rollout, task_for_env
@@ -142,3 +142,27 @@ def test_a_kept_episode_reads_back_its_edited_world(tmp_path):
     assert back.task.instruction == task.instruction
     assert row_summary(db.kept(1))["world_edits"] == [e.to_dict() for e in edits]
     db.close()
+
+
+def test_edits_typed_in_a_few_words():
+    box = next(k for k, lm in enumerate(TASK.world.landmarks) if lm.noun_phrase == "box")
+    edits = edits_from_text("move pumpkin to 12 20.5; remove box; add tank at 4, 9", TASK.world)
+    assert [e.to_dict() for e in edits] == [{"op": "move", "landmark": NAMED, "x": 12.0, "y": 20.5},
+                                            {"op": "remove", "landmark": box},
+                                            {"op": "add", "noun_phrase": "tank", "x": 4.0, "y": 9.0}]
+    assert edits_from_text("remove 3", TASK.world)[0].landmark == 3 and edits_from_text("  ", TASK.world) == ()
+    for text, message in (("move anvil to 3 4", "no anvil in this world"), ("fly pumpkin", "write 'move NAME"),
+                          ("move pumpkin to x 4", "could not convert"), ("add tank 4 9", "write 'move NAME")):
+        with pytest.raises(EditError, match=message):
+            edits_from_text(text, TASK.world)
+
+
+def test_the_result_panel_says_what_was_changed():
+    from app.live.recording import Episode
+    from app.render.panels import edits_text
+
+    edits = edits_from_text("remove box; add tank at 4 9", TASK.world)
+    episode = Episode(id=1, task=TASK, policy="expert", system="oracle", checkpoint=None, horizon=20,
+                      world_edits=edits)
+    box = next(k for k, lm in enumerate(TASK.world.landmarks) if lm.noun_phrase == "box")
+    assert edits_text(episode) == f"removed landmark {box}; added a tank at (4.0, 9.0)"

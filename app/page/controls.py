@@ -58,6 +58,7 @@ from app.render.panels import (
     which_landmark,
 )
 from gsmn.model.grid import cell_centre
+from gsmn.task.edits import EditError, edits_from_text
 from gsmn.task.instructions import SIDES
 from gsmn.task.understand import understand
 from gsmn.world.spec import SPLITS, split_env_ids, split_of, world_for_env
@@ -139,6 +140,8 @@ class ViewerControls:
             # the template's words and this world's landmark names, as buttons that fill the instruction in
             self.side_chips = gui.add_button_group("Sides", SIDES)
             self.name_chips = gui.add_button_group("Landmarks", ("(none)",))
+            self.world_edits = gui.add_text("World edits", "", hint="fly an edited world: 'move pumpkin to 12 20.5; "
+                                            "remove box; add tank at 4 9' (x, y in m, 0-30; docs/compare.md)")
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
@@ -359,8 +362,14 @@ class ViewerControls:
         env_id = self._env_id()
         if env_id is None:
             return
+        try:  # named in the environment's own world
+            edits = edits_from_text(self.world_edits.value, world_for_env(env_id, self.runner.config.world))
+        except EditError as e:
+            self.status.content = f"**Not started:** {e}"
+            return
         self.status.content = "Starting..."
-        self._post(StartEpisode(env_id, text, policy, checkpoint, preempt=True, paused=paused), StartAnswered)
+        self._post(StartEpisode(env_id, text, policy, checkpoint, preempt=True, paused=paused, world_edits=edits),
+                   StartAnswered)
 
     def _post(self, command, answered: type[ShowAnswered | StartAnswered]) -> Future:
         command.origin = self.origin  # what it starts is this tab's

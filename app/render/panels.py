@@ -176,6 +176,7 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     note = ambiguity_note(episode)
     ambiguous = f"| ambiguous | {note} |\n" if note else ""
     passed = "" if r.success else f"| success region | {region_passage(episode, success_radius)} |\n"
+    edited = f"| world edited | {html.escape(edits_text(episode))} |\n" if episode.world_edits else ""
     return (f"#### Episode {episode.id}: <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
@@ -185,7 +186,17 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
             f"| quadrant | {quadrant_text(r, instruction.side)} |\n"
             f"{passed}"
             f"{ambiguous}"
+            f"{edited}"
             f"| P(stop) at the end | {stop} |\n")
+
+
+def edits_text(episode: Episode) -> str:
+    """What the episode's world edits changed, in words ("moved landmark 2 to (12.0, 20.5); removed landmark 4";
+    landmarks by their index in the environment's world), and the step of a fork that made them."""
+    words = {"move": "moved landmark {landmark} to ({x:.1f}, {y:.1f})", "remove": "removed landmark {landmark}",
+             "add": "added a {noun_phrase} at ({x:.1f}, {y:.1f})"}
+    said = "; ".join(words[e.op].format(**e.to_dict()) for e in episode.world_edits)
+    return said + (f", at step {episode.fork.step}" if episode.fork is not None else "")
 
 
 def quadrant_text(r, asked: str) -> str:

@@ -180,3 +180,42 @@ def edited_task(task: Task, edits: Sequence[WorldEdit], config: RunConfig,
     except DemoPathError as e:
         raise EditError(f"no demonstration in the edited world: {e}") from None
     return Task(world, instruction, path)
+
+
+def edits_from_text(text: str, world: WorldSpec) -> tuple[WorldEdit, ...]:
+    """Edits typed in a few words, `;`-separated: "move pumpkin to 12 20.5; remove box; add tank at 4 9". A landmark
+    is named by its noun phrase (or its index, as in the API); a name that several landmarks share takes the index.
+    EditError says what could not be read."""
+    items: list[dict[str, Any]] = []
+    for k, part in enumerate(p.strip() for p in text.split(";")):
+        if not part:
+            continue
+        words = part.replace(",", " ").split()
+        op, rest = words[0].lower(), words[1:]
+        where = f"edit {k + 1} ({part!r})"
+        try:
+            if op == "remove" and rest:
+                items.append({"op": "remove", "landmark": _landmark(" ".join(rest), world)})
+            elif op in ("move", "add") and len(rest) >= 3 and rest[-3].lower() in ("to", "at"):
+                x, y = float(rest[-2]), float(rest[-1])
+                name = " ".join(rest[:-3])
+                items.append({"op": "move", "landmark": _landmark(name, world), "x": x, "y": y} if op == "move" else
+                             {"op": "add", "noun_phrase": name.lower(), "x": x, "y": y})
+            else:
+                raise ValueError("write 'move NAME to X Y', 'remove NAME' or 'add NAME at X Y'")
+        except ValueError as e:
+            raise EditError(f"{where}: {e}") from None
+    return parse_edits(items)
+
+
+def _landmark(name: str, world: WorldSpec) -> int:
+    if name.strip().isdigit():
+        return int(name)
+    found = [i for i, lm in enumerate(world.landmarks) if lm.noun_phrase == name.strip().lower()]
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise ValueError(f"no {name.strip()} in this world (its landmarks: "
+                         f"{', '.join(lm.noun_phrase for lm in world.landmarks)})")
+    raise ValueError(f"{len(found)} landmarks are called {name.strip()}: name one by its index "
+                     f"({', '.join(map(str, found))})")
