@@ -148,7 +148,7 @@ def test_a_fork_edits_the_world_at_its_step_and_the_drone_keeps_its_state(server
     a = client.get(f"/api/episodes/{original['id']}/steps").json()["steps"]
     b = client.get(f"/api/episodes/{fork['id']}/steps").json()["steps"]
     assert [(s["x"], s["y"]) for s in b[:12]] == [(s["x"], s["y"]) for s in a[:12]]
-    assert (b[12]["x"], b[12]["y"], b[12]["z"]) == pytest.approx((a[12]["x"], a[12]["y"], a[12]["z"]), abs=1e-6)
+    assert (b[12]["x"], b[12]["y"], b[12]["z"]) == pytest.approx((a[12]["x"], a[12]["y"], a[12]["z"]), abs=1e-9)
     goal = (fork["goal_x"], fork["goal_y"])
     assert math.dist((b[-1]["x"], b[-1]["y"]), goal) < math.dist((a[-1]["x"], a[-1]["y"]), goal), \
         "the fork flew toward the moved goal"

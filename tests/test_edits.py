@@ -166,3 +166,26 @@ def test_the_result_panel_says_what_was_changed():
                       world_edits=edits)
     box = next(k for k, lm in enumerate(TASK.world.landmarks) if lm.noun_phrase == "box")
     assert edits_text(episode) == f"removed landmark {box}; added a tank at (4.0, 9.0)"
+
+
+def test_an_added_landmark_is_simulated_and_seen_by_the_camera():
+    """A mailbox added 10 m ahead of the drone at the start (the fir tree and the car, in the way, removed first): the
+    simulator builds a body for it and the first camera image shows it (pixels change, in the middle of the picture);
+    the world without it renders as before."""
+    w = TASK.world
+    ahead = (w.start_x + 10.0 * math.cos(w.start_yaw), w.start_y + 10.0 * math.sin(w.start_yaw))
+    w, _ = edit_world(w, edits_from_text("remove fir tree; remove car", w), CONFIG)  # in the way: removed first
+    edits = parse_edits([{"op": "add", "noun_phrase": "mailbox", "x": ahead[0], "y": ahead[1]}])
+    edited, _ = edit_world(w, edits, CONFIG)
+    env = Env(CONFIG)
+    before = env.reset(70, None, w).image.astype(int)
+    bodies = env.sim.model.nbody
+    after = env.reset(70, None, edited).image.astype(int)
+    assert env.sim.model.nbody == bodies + 1, "a body for the mailbox"
+    changed = np.abs(after - before).max(axis=2) > 24
+    h, width = changed.shape
+    assert changed.mean() > 0.003, f"only {changed.mean():.3%} of the pixels changed"  # a mailbox 10 m away
+    ys, xs = np.nonzero(changed)
+    assert width / 3 < xs.mean() < 2 * width / 3 and h / 4 < ys.mean() < 3 * h / 4, "straight ahead"
+    again = env.reset(70, None, w).image.astype(int)
+    assert np.array_equal(again, before)
