@@ -215,3 +215,19 @@ def test_an_episode_recorded_as_an_evaluation_flies_keeps_its_facts(tmp_path):
 
     assert row_facts(db.episode(eid, 86), preset("tiny")) == kept[86], "the same as from the row"
     db.close()
+
+
+def test_a_record_without_what_the_facts_need_is_recorded_and_analysed_from_its_row(tmp_path):
+    """A progress line or an imported file without the instruction's landmark index and goal (an older writer's):
+    the episode is recorded all the same, without facts, and the analysis computes them from its row."""
+    from app.jobs.results import EpisodeRecorder
+
+    db = Database(tmp_path / "gsmn.sqlite")
+    (ep,) = compact_evaluation((85,), lambda e: True)["episodes"]
+    eid = db.add_evaluation(system="oracle", checkpoint=None, env_ids=[85], label="old file", status="finished")
+    bare = {k: v for k, v in ep.items() if k not in ("landmark_index", "goal_x", "goal_y")}
+    EpisodeRecorder(db).record(eid, 0, bare, preset("tiny"), None, None)
+    assert len(db.episodes(eid)) == 1 and db.facts(eid) == {}
+    found = Analyses(db, preset("tiny"), tmp_path).analysis(eid)
+    assert found["n"] == 1 and db.facts(eid)[85] == facts_of(ep, preset("tiny"), None)
+    db.close()

@@ -50,7 +50,12 @@ class EpisodeRecorder:
             final_x=float(record["final_x"]), final_y=float(record["final_y"]),
             stage=attribution.get("stage") if attribution else None, attribution=attribution,
             recording=str(recording) if recording else None, region_steps=region, region_stop_p=stop_p))
-        self.db.set_facts(evaluation_id, {env_id: facts_of(record, config, attribution)})  # for the analysis view
+        try:  # for the analysis view; derived, so a record that lacks what they need is analysed from its row later
+            facts = facts_of(record, config, attribution)
+        except (KeyError, ValueError, TypeError, IndexError) as e:
+            log.debug("no facts for episode %d of evaluation %d yet: %s", env_id, evaluation_id, e)
+        else:
+            self.db.set_facts(evaluation_id, {env_id: facts})
 
     def _attribute(self, record: dict, config: RunConfig, checkpoint: str, trace) -> dict | None:
         from gsmn.attribution import attribute_record
