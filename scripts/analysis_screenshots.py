@@ -13,6 +13,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -25,6 +26,7 @@ def main() -> None:
     p.add_argument("--port", type=int, default=8660)
     args = p.parse_args()
     import playwright.sync_api as playwright_api
+    from kept_screenshots import _close_notifications  # beside this script
 
     from app.browser import CHROMIUM, CHROMIUM_ARGS, field
     from app.page.analysis_view import SHIPPED
@@ -69,12 +71,6 @@ def main() -> None:
             print(f"wrote {out / 'dashboard_analysis.png'} and {out / 'dashboard_analysis_confusion.png'}")
         finally:
             d.close()
-
-
-def _close_notifications(page) -> None:
-    """Hide viser's notices (headless Chromium renders WebGL in software, and viser says so)."""
-    page.add_style_tag(content="[class*='Notification']{display:none !important}")
-    page.wait_for_timeout(500)
 
 
 if __name__ == "__main__":
