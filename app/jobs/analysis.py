@@ -104,9 +104,10 @@ class Analyses:
             raise NotFound(f"no evaluation {evaluation_id}")
         return e
 
-    def rows(self, e: Evaluation) -> list[dict]:
-        """The evaluation's episodes as `slices` reads them, with their facts (computed and kept where missing)."""
-        episodes = self.db.episodes(e.id)
+    def rows(self, e: Evaluation, episodes: list[EpisodeRow] | None = None) -> list[dict]:
+        """The evaluation's episodes (read when not given) as `slices` reads them, with their facts (computed and
+        kept where missing)."""
+        episodes = self.db.episodes(e.id) if episodes is None else episodes
         kept = {env: f for env, f in self.db.facts(e.id).items() if slices.valid_facts(f)}  # else computed again
         missing = {}
         config = self._config(e)
@@ -163,10 +164,11 @@ class Analyses:
         if cell is not None and cell[0] not in slices.CONFUSIONS:
             raise RunnerError(f"no confusion matrix {cell[0]!r}; choose from {', '.join(slices.CONFUSIONS)}")
         e = self.evaluation(evaluation_id)
-        chosen = set(slices.select(self.rows(e), criteria, cell, ambiguous))
+        episodes = self.db.episodes(e.id)
+        chosen = set(slices.select(self.rows(e, episodes), criteria, cell, ambiguous))
         if versus_id is not None:
             chosen &= set(self.evaluation(versus_id).env_ids)
-        return [row for row in self.db.episodes(e.id) if row.env_id in chosen]
+        return [row for row in episodes if row.env_id in chosen]
 
     # -- shipped evaluations ----------------------------------------------------------------------------------
     def shipped(self, evaluations: list[Evaluation] | None = None) -> list[dict]:

@@ -15,6 +15,7 @@ import viser
 
 from app.jobs.db import FINISHED, EpisodeRow
 from app.live.commands import RunnerError
+from app.page.failures_view import show_page
 from app.render.analysis_panels import (
     HIDE_PICK_FIELD,
     MATRICES,
@@ -26,7 +27,7 @@ from app.render.analysis_panels import (
     slices_html,
     versus_html,
 )
-from app.render.jobs_panels import episode_colour, episode_hint, episode_label, evaluation_label, note_html
+from app.render.jobs_panels import evaluation_label, note_html
 from app.render.panels import error_html
 from gsmn.analysis.slices import ATTRIBUTES
 
@@ -147,15 +148,7 @@ class AnalysisTab:
         if title is not None:
             self.analysis_title = title
         n = len(self.analysis_rows)
-        pages = max(1, math.ceil(n / ROWS))
-        self.analysis_page = min(self.analysis_page, pages - 1)
-        shown = self.analysis_rows[self.analysis_page * ROWS:(self.analysis_page + 1) * ROWS]
-        for k, button in enumerate(self.an_rows):
-            if k < len(shown):
-                button.label, button.hint = episode_label(shown[k]), episode_hint(shown[k])
-                button.color, button.visible = episode_colour(shown[k]), True
-            else:
-                button.visible = False
+        self.analysis_page, pages = show_page(self.an_rows, self.analysis_rows, self.analysis_page)
         what = f"**{html.escape(self.analysis_title)}**: " if getattr(self, "analysis_title", "") else ""
         self.an_note.content = (f"{what}{n} episode{'s' if n != 1 else ''}; page {self.analysis_page + 1} of "
                                 f"{pages}. Click one to fly it again in the live view (shown at the step it went "

@@ -44,6 +44,21 @@ REGION_CHOICES = {"flew through it": True, "never entered": False}  # the "Succe
 ALL = "all"
 
 
+def show_page(buttons, rows: list[EpisodeRow], page: int) -> tuple[int, int]:
+    """Episode buttons showing page `page` of `rows` (kept within the pages there are), the others hidden; the page
+    shown and how many there are."""
+    pages = max(1, math.ceil(len(rows) / len(buttons)))
+    page = min(page, pages - 1)
+    shown = rows[page * len(buttons):(page + 1) * len(buttons)]
+    for k, button in enumerate(buttons):
+        if k < len(shown):
+            button.label, button.hint = episode_label(shown[k]), episode_hint(shown[k])
+            button.color, button.visible = episode_colour(shown[k]), True
+        else:
+            button.visible = False
+    return page, pages
+
+
 class FailuresTab:
     """The Failures tab's part of `app.page.jobs_view.JobsView` (its controls are attributes of the view)."""
 
@@ -195,17 +210,7 @@ class FailuresTab:
 
     def _show_rows(self) -> None:
         n = len(self.rows)
-        pages = max(1, math.ceil(n / ROWS))
-        self.page = min(self.page, pages - 1)
-        shown = self.rows[self.page * ROWS:(self.page + 1) * ROWS]
-        for k, button in enumerate(self.row_buttons):
-            if k < len(shown):
-                button.label = episode_label(shown[k])
-                button.hint = episode_hint(shown[k])
-                button.color = episode_colour(shown[k])
-                button.visible = True
-            else:
-                button.visible = False
+        self.page, pages = show_page(self.row_buttons, self.rows, self.page)
         self.list_note.content = (f"**{n}** episode{'s' if n != 1 else ''} match; page {self.page + 1} of {pages}. "
                                   "Click one to fly it again in the live view." if n else "No episode matches.")
 
