@@ -183,6 +183,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     executor_options = executor.options_from_args(args)
     env_ids = env_ids_for(args.split, args.episodes, args.env_ids)
+    intervention = None
+    if args.intervene:
+        from gsmn.analysis.intervention import intervention_from_flag
+
+        intervention = intervention_from_flag(args.intervene)
     if args.resume and not args.json:
         raise ValueError("--resume continues the evaluation that writes --json F (from F.partial.jsonl): give --json")
     partial, done = None, []
@@ -192,7 +197,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                   "checkpoint": checkpoint_fingerprint(args.system, args.checkpoint),
                   "mirror_ensemble": args.mirror_ensemble,
                   "ensemble_with": [checkpoint_fingerprint(args.system, c) for c in args.ensemble_with],
-                  "config": config.to_dict()}
+                  "config": config.to_dict(), **({"intervention": args.intervene} if args.intervene else {})}
         done = partial.open(header, args.resume)
         if done:
             print(f"resuming: {len(done)} of {len(env_ids)} episodes kept in {partial.path}", file=sys.stderr)
@@ -220,7 +225,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         flown = evaluate(args.system, [e for e in env_ids if e not in done_ids], config, args.checkpoint,
                          args.workers, on_episode=on_episode, record_dir=args.record,
                          mirror_ensemble=args.mirror_ensemble, ensemble_with=args.ensemble_with,
-                         executor_options=executor_options)
+                         executor_options=executor_options, intervention=intervention)
     seconds = time.perf_counter() - t0
     by_id = {r.env_id: r for r in done + flown}
     records = [by_id[e] for e in env_ids]
@@ -231,8 +236,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(f"{len(records)} episodes ({pruned} unambiguous); {len(flown)} flown in {seconds:.0f} s with "
           f"{args.workers} worker(s): {60 * len(flown) / max(seconds, 1e-9):.1f} episodes/min")
     if args.json:
-        write_json(Path(args.json), results_dict(args.system, args.checkpoint, records, config, seconds, args.workers,
-                                                 args.mirror_ensemble, args.ensemble_with))
+        results = results_dict(args.system, args.checkpoint, records, config, seconds, args.workers,
+                               args.mirror_ensemble, args.ensemble_with)
+        if intervention is not None:
+            results["intervention"] = intervention.to_dict()
+        write_json(Path(args.json), results)
         partial.remove()
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
@@ -454,6 +462,45 @@ def cmd_analyze_slices(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_analyze_rescue(args: argparse.Namespace) -> int:
+    from gsmn.analysis import rescue
+    from gsmn.evaluation import checkpoint_path, write_json
+
+    results = _read_results(args.results)
+    config = config_from_args(args)
+    folder = Path(args.checkpoint) if args.checkpoint else checkpoint_path("gsmn", results.get("checkpoint"))
+    failures = rescue.failures_of(results)
+    if not failures:
+        raise ValueError(f"{args.results} has no failure to rescue")
+    out = Path(args.out)
+    flags = args.interventions
+    with _progress(len(failures) * len(flags), "rescue") as bar:
+        stages, replayed = rescue.stages_of(failures, folder, config, args.record, args.workers)
+        flown = {flag: rescue.fly_intervention(flag, sorted(stages), folder, config, out, args.workers,
+                                               on_episode=lambda r: bar.update(1)) for flag in flags}
+    table = rescue.rescue_table(stages, flown, replayed)
+    table.update(evaluation=args.results, checkpoint=str(folder))
+    write_json(out / "rescue.json", table)
+    print(rescue.rescue_markdown(table))
+    return 0
+
+
+def cmd_map_codes(args: argparse.Namespace) -> int:
+    from gsmn.analysis import rescue
+    from gsmn.evaluation import env_ids_for
+
+    config = config_from_args(args)
+    env_ids = env_ids_for("dev" if args.env_ids is None else None, args.episodes, args.env_ids)
+    with _progress(len(env_ids), "calibration flights") as bar:
+        codes = rescue.calibrate(args.checkpoint, env_ids, config, args.workers, on_episode=lambda r: bar.update(1))
+    path = rescue.save_codes(args.checkpoint, codes)
+    m = codes.meta
+    print(f"wrote {path}: {m['classes_seen']} of {len(codes.semantic_known)} landmark classes seen, "
+          f"{m['successes']} of {m['episodes']} flights succeeded (relevance and goal codes from "
+          f"{m['relevance_goal_from']})")
+    return 0
+
+
 def cmd_analyze_dagger(args: argparse.Namespace) -> int:
     from gsmn.analysis.dagger import dagger_table
 
@@ -520,9 +567,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more checkpoints of the same learned system to fly beside --checkpoint as a test-time "
                         "ensemble, their actions averaged (with --mirror-ensemble each also flies the mirror image; "
                         "not in the paper)")
+    p.add_argument("--intervene", default=None, choices=("truth-semantic", "truth-relevance", "truth-goal"),
+                   help="fly a GSMN with a map intervention from the first step: the true semantic map (perfect "
+                        "perception), relevance map (perfect grounding) or goal map (perfect goal), in the model's "
+                        "own coding (needs the checkpoint's map codes: `gsmn map-codes`; docs/model.md)")
     executor.add_arguments(p)
     add_config_arguments(p)
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("map-codes", help="derive a GSMN checkpoint's map codes (its own coding of each kind of "
+                       "cell, for map interventions) from calibration flights on dev environments")
+    p.add_argument("--checkpoint", required=True, help="the GSMN checkpoint folder (map_codes.safetensors goes there)")
+    p.add_argument("--episodes", type=int, default=40, help="dev environments to fly (default 40)")
+    p.add_argument("--env-ids", default=None, help="'A:B' or '3,17,42' instead of the first dev environments")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    add_config_arguments(p)
+    p.set_defaults(func=cmd_map_codes)
 
     p = sub.add_parser("fit-avg-forward", help="measure the avg-forward baseline from expert episodes on train")
     p.add_argument("--episodes", type=int, default=500, help="expert episodes to average over")
@@ -640,6 +700,20 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--write-compact", default=None, metavar="OUT", help="write RESULTS with its facts and stages "
                    "and without the per-step fields (trajectories, actions), as the shipped evaluations are kept")
     a.set_defaults(func=cmd_analyze_slices)
+    a = analyze.add_parser("rescue", help="how many of an evaluation's failures each truth map intervention saves, "
+                           "per attributed stage (a causal check of failure attribution; docs/results.md)")
+    a.add_argument("results", help="a `gsmn eval --json` file or a compact evaluation (its failures are flown again)")
+    a.add_argument("--checkpoint", default=None, help="the GSMN checkpoint (default: the one the evaluation names)")
+    a.add_argument("--record", default=None, help="the evaluation's --record folder, for the failures' stages "
+                   "(otherwise each failure is flown once more without intervention, recording its maps)")
+    a.add_argument("--interventions", default=list(("truth-semantic", "truth-relevance", "truth-goal")),
+                   type=lambda s: [f for f in s.split(",") if f], metavar="FLAG,...",
+                   help="which (default: truth-semantic,truth-relevance,truth-goal)")
+    a.add_argument("--out", required=True, help="folder for each intervention's flights (a stopped run resumes) "
+                   "and rescue.json")
+    a.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    add_config_arguments(a)
+    a.set_defaults(func=cmd_analyze_rescue)
     a = analyze.add_parser("dagger", help="DAggerFM runs side by side, an iteration a row")
     a.add_argument("runs", nargs="+", type=Path, help="DAggerFM run folders")
     a.add_argument("--first", type=int, default=1, help="first iteration to print")

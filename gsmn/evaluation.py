@@ -16,6 +16,7 @@ import json
 import platform
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import gsmn
 from gsmn.config import RunConfig
@@ -32,6 +33,9 @@ from gsmn.task.metrics import Summary, record_region_steps, region_stop_probabil
 from gsmn.task.rollout import EpisodeRecord, Policy, rollout, task_for_env
 from gsmn.world.env import Env
 from gsmn.world.spec import split_env_ids
+
+if TYPE_CHECKING:
+    from gsmn.analysis.intervention import Intervention
 
 REPO_ROOT = Path(gsmn.__file__).resolve().parents[1]
 AVG_FORWARD_PATH = REPO_ROOT / "checkpoints" / "avg_forward.json"
@@ -53,10 +57,14 @@ def checkpoint_path(system: str, checkpoint: str | Path | None = None) -> Path |
 
 
 def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = None,
-                mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = ()) -> Policy:
+                mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = (),
+                intervention: Intervention | None = None) -> Policy:
     """The policy of a system. Learned systems only: `ensemble_with` names more checkpoints of the same system
     that fly beside it as a test-time ensemble, and `mirror_ensemble` flies each model on the mirror image too
-    (`gsmn.model.policy.Ensemble`)."""
+    (`gsmn.model.policy.Ensemble`); `intervention`: a GSMN flies every episode with that map intervention from its
+    first step (`gsmn.analysis.intervention`)."""
+    if intervention is not None:
+        return _intervened_policy(system, config, checkpoint, mirror_ensemble or bool(ensemble_with), intervention)
     if (mirror_ensemble or ensemble_with) and system not in LEARNED_SYSTEMS:
         flag = "--mirror-ensemble" if mirror_ensemble else "--ensemble-with"
         raise ValueError(f"{flag} needs a learned system ({', '.join(LEARNED_SYSTEMS)}), not {system!r}")
@@ -89,6 +97,21 @@ def make_policy(system: str, config: RunConfig, checkpoint: str | Path | None = 
     raise ValueError(f"unknown system {system!r}; available: {', '.join(SYSTEMS)}")
 
 
+def _intervened_policy(system: str, config: RunConfig, checkpoint: str | Path | None, ensemble: bool,
+                       intervention: Intervention) -> Policy:
+    from gsmn.analysis.intervention import InterventionError, InterventionMaker, check_model, codes_for
+
+    if system not in ("gsmn", "gsmn-no-plan") or ensemble:
+        raise InterventionError(f"a map intervention flies one GSMN (gsmn or gsmn-no-plan), not {system!r}"
+                                + (" as an ensemble" if ensemble else ""))
+    policy = make_policy(system, config, checkpoint)
+    check_model(policy.model)
+    codes = codes_for(checkpoint_path(system, checkpoint))
+    policy.intervene(InterventionMaker(intervention, codes, policy.model.config.model.map_size,
+                                       config.task.success_radius))
+    return policy
+
+
 def parse_env_ids(spec: str) -> list[int]:
     """'A:B' (A inclusive, B exclusive) or a comma-separated list '3,17,42'."""
     try:
@@ -118,12 +141,13 @@ _worker: dict = {}
 
 def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render: bool | None,
                  threads: int | None = None, record_dir: str | None = None, mirror_ensemble: bool = False,
-                 ensemble_with: Sequence[str] = ()) -> None:
+                 ensemble_with: Sequence[str] = (), intervention: Intervention | None = None) -> None:
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    _use(make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with), config, render, record_dir)
+    _use(make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with, intervention), config, render,
+         record_dir)
 
 
 def _use(policy: Policy, config: RunConfig, render: bool | None, record_dir: str | None = None) -> None:
@@ -151,17 +175,18 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
              workers: int = 1, on_episode: Callable[[EpisodeRecord], None] | None = None,
              render: bool | None = None, record_dir: str | Path | None = None,
              mirror_ensemble: bool = False, ensemble_with: Sequence[str | Path] = (),
-             executor_options: ExecutorOptions | None = None) -> list[EpisodeRecord]:
+             executor_options: ExecutorOptions | None = None, intervention: Intervention | None = None
+             ) -> list[EpisodeRecord]:
     """Fly `system` on each environment id; records in the order of `env_ids`, on `workers` workers of the
     executor `executor_options` names (default: worker processes on this host; `gsmn.executor`). `render`
     forces the camera on or off (default: only for policies that look). `record_dir`: write each episode's
     ModelTrace there (GSMN only; other systems have no maps and write nothing). `mirror_ensemble`,
-    `ensemble_with`: see `make_policy`."""
+    `ensemble_with`, `intervention`: see `make_policy`."""
     checkpoint = str(checkpoint) if checkpoint is not None else None
     record_dir = str(record_dir) if record_dir is not None else None
     ensemble_with = [str(c) for c in ensemble_with]
     # fails here, clearly, before any worker starts
-    policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with)
+    policy = make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with, intervention)
     records = []
 
     def in_process():  # one worker: this process, with the policy loaded above
@@ -170,7 +195,7 @@ def evaluate(system: str, env_ids: Sequence[int], config: RunConfig, checkpoint:
 
     executor = make_executor(executor_options, workers, _init_worker,
                              (system, config, checkpoint, render, 1, record_dir,  # a core each
-                              mirror_ensemble, ensemble_with), in_process=in_process)
+                              mirror_ensemble, ensemble_with, intervention), in_process=in_process)
     try:
         for record in executor.map(_run_one, env_ids):
             records.append(record)

@@ -19,6 +19,7 @@ from app.api.models import (
     EpisodeSummary,
     Policy,
     WorldEditModel,
+    intervention_of,
     summary,
     world_edits_of,
 )
@@ -61,6 +62,12 @@ class ForkRequest(Strict):
     world_edits: list[WorldEditModel] = Field(
         [], max_length=MAX_EDITS, description="edits made to the original's world at this step, as on POST "
         "/api/episodes (the drone keeps its exact state; a landmark may not be put where the drone then is)")
+    intervention: dict | None = Field(
+        None, examples=[{"map": "goal", "with": "truth", "hold": True}], description="from this step on the model "
+        "flies with a corrected map in place of its own: map semantic, relevance or goal; with truth, or painted "
+        "(the model's own map with paint: [{op: peak or erase, x, y, radius}], relevance and goal only); hold true "
+        "(every step, the default) or false (the true semantic map written once into the map it keeps integrating); "
+        "docs/model.md, 'Interventions'")
 
 
 class ComparisonModel(BaseModel):
@@ -107,6 +114,7 @@ def get_comparison(comparison_id: ComparisonId, runner: TheRunner) -> Comparison
              summary="Fly on from step t of a finished episode, with another instruction, policy or checkpoint")
 def fork(episode_id: EpisodeId, request: ForkRequest, runner: TheRunner):
     e = runner.call(ForkEpisode(episode_id, request.step, request.instruction, request.checkpoint,
-                                request.policy, world_edits=world_edits_of(request.world_edits)), COMMAND_TIMEOUT)
+                                request.policy, world_edits=world_edits_of(request.world_edits),
+                                intervention=intervention_of(request.intervention)), COMMAND_TIMEOUT)
     return EpisodeCreated(id=e.id, status=e.status, env_id=e.env_id, instruction=e.instruction,
                           policy=e.policy)

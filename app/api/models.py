@@ -62,6 +62,19 @@ def world_edits_of(models: list[WorldEditModel]) -> tuple:
         raise RunnerError(str(err)) from err
 
 
+def intervention_of(d: dict | None):
+    """The request's map intervention, checked (gsmn.analysis.intervention.parse_intervention); a bad one is a
+    RunnerError (422)."""
+    if d is None:
+        return None
+    from gsmn.analysis.intervention import InterventionError, parse_intervention
+
+    try:
+        return parse_intervention(d)
+    except InterventionError as err:
+        raise RunnerError(str(err)) from err
+
+
 class EpisodeSummary(BaseModel):
     id: int
     status: Literal["queued", "running", "paused", "finished", "cancelled", "failed"]
@@ -98,6 +111,8 @@ class EpisodeSummary(BaseModel):
     compared_with: int | None = Field(None, description="the other episode of that comparison")
     world_edits: list[dict] = Field([], description="the edits its world carries (POST /api/episodes' "
                                     "world_edits); empty: the environment's world as generated")
+    intervention: dict | None = Field(None, description="the map the model flew with from its fork's step (POST "
+                                      "/api/episodes/{id}/fork's intervention); null: its own maps")
 
 
 def _result(r: EpisodeResult | None) -> ResultModel | None:
@@ -114,4 +129,5 @@ def summary(e: Episode) -> EpisodeSummary:
                           horizon=e.horizon, steps_per_second=e.steps_per_second(), result=_result(e.result),
                           error=e.error, created=e.created, fork_of=fork[0], fork_step=fork[1],
                           comparison=e.comparison, comparison_side=e.comparison_side,
-                          compared_with=e.compared_with, world_edits=[w.to_dict() for w in e.world_edits])
+                          compared_with=e.compared_with, world_edits=[w.to_dict() for w in e.world_edits],
+                          intervention=e.intervention.to_dict() if e.intervention is not None else None)

@@ -350,4 +350,4 @@ def row_summary(row) -> dict[str, Any]:
             "bytes": int(row["bytes"]), "kept_steps": int(row["steps"]), "fork_of": fork.get("episode_id"),
             "fork_step": fork.get("step"), "comparison": comparison.get("id"),
             "comparison_side": comparison.get("side"), "compared_with": comparison.get("with"),
-            "world_edits": task.get("world_edits", [])}
+            "world_edits": task.get("world_edits", []), "intervention": task.get("intervention")}

@@ -112,10 +112,24 @@ def episode_relation(episode: Episode) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if episode.fork is not None:
         out["fork"] = {"episode_id": int(episode.fork.episode_id), "step": int(episode.fork.step)}
+    if episode.intervention is not None:  # the map it flew with from the fork's step (gsmn.analysis.intervention)
+        out["intervention"] = episode.intervention.to_dict()
     if episode.comparison is not None:
         out["comparison"] = {"id": int(episode.comparison), "side": episode.comparison_side,
                              "with": episode.compared_with}
     return out
+
+
+def _intervention(d: dict | None):
+    """A kept episode's map intervention, read back; one this code cannot read is left out, not fatal."""
+    if d is None:
+        return None
+    from gsmn.analysis.intervention import InterventionError, parse_intervention
+
+    try:
+        return parse_intervention(d)
+    except InterventionError:
+        return None
 
 
 # -- the record of episodes -----------------------------------------------------------------------------------------
@@ -171,7 +185,8 @@ class KeptStore(EpisodeStore):
         episode = Episode(id=int(row["id"]), task=Task(world, instruction, np.array(task["path"], np.float64)),
                           policy=row["policy"], system=row["system"], checkpoint=row["checkpoint"],
                           horizon=int(row["horizon"]), status=row["status"], error=row["error"],
-                          created=float(row["created"]), typed=task.get("typed"), world_edits=edits)
+                          created=float(row["created"]), typed=task.get("typed"), world_edits=edits,
+                          intervention=_intervention(task.get("intervention")))
         if row["result"] is not None:
             episode.result = EpisodeResult(**json.loads(row["result"]))
         episode.steps.extend(step_of_row(r, str(self.db.path)) for r in self.db.kept_steps(episode_id))

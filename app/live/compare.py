@@ -67,6 +67,7 @@ class ForkEpisode(Command):
     policy: str | None = None  # None: the original's
     preempt: bool = False
     world_edits: tuple = ()  # gsmn.task.edits.WorldEdit made to the original's world at the fork's step
+    intervention: Any = None  # gsmn.analysis.intervention.Intervention: the model flies on with this map
 
 
 # -- records --------------------------------------------------------------------------------------------------
@@ -82,6 +83,7 @@ class ForkPoint:
     same_expert: bool  # the fork's expert follows the original expert's path: its progress applies
     expert_task: Task | None  # the path the fork's expert follows (from the fork point, for a new instruction)
     world: Any = None  # the original's world (gsmn.world.spec.WorldSpec), where the model's memory is rebuilt
+    intervene: Any = None  # the maker of the map substitute the model flies with from step t (an intervention)
 
 
 @dataclass
@@ -175,6 +177,9 @@ class Comparisons:
         episode = r._new_episode(original.env_id, original.instruction, policy, checkpoint, check_queue=not c.preempt)
         episode.task, episode.world_edits = task, tuple(c.world_edits)
         episode.fork = self._fork_point(original, episode, c.step)
+        if c.intervention is not None:
+            episode.intervention = c.intervention
+            episode.fork = replace(episode.fork, intervene=self._intervention_maker(c, policy, checkpoint))
         episode.steps = list(original.steps[:c.step])
         r.episodes.add(episode)
         r._enqueue(c, episode, episode)
@@ -198,6 +203,23 @@ class Comparisons:
             return edited_task(original.task, c.world_edits, r.config, drone)
         except EditError as e:
             raise RunnerError(str(e)) from e
+
+    def _intervention_maker(self, c: ForkEpisode, policy: str, checkpoint: str | None):
+        """What makes the fork's map substitute (`gsmn.analysis.intervention`), or a RunnerError saying why not."""
+        from gsmn.analysis.intervention import InterventionError, InterventionMaker, check_model, codes_for
+
+        r = self.runner
+        if policy != "model" or checkpoint is None or checkpoint not in r.models:
+            raise RunnerError("a map intervention changes the maps the model flies with: fork with policy 'model' "
+                              "and a GSMN checkpoint")
+        model = r.models[checkpoint]
+        try:
+            check_model(model.policy.model)
+            codes = codes_for(model.path)
+        except InterventionError as e:
+            raise RunnerError(str(e)) from e
+        return InterventionMaker(c.intervention, codes, model.policy.model.config.model.map_size,
+                                 r.config.task.success_radius)
 
     def _forkable(self, episode_id: int) -> tuple[Episode, int]:
         """The episode to fork, and how many of its steps have a simulator state to start from."""

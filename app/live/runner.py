@@ -405,6 +405,8 @@ class Runner:
             flight.expert.reset(fork.expert_task)
         start = fork_start(self.env, fork.snapshots, fork.step, fork.prefix, flight.carrier, fork.same_model,
                            flight.expert, fork.same_expert, episode.task.world)
+        if fork.intervene is not None:  # from step t on, the model flies with the substitute map
+            flight.carrier.intervene(fork.intervene, episode.task)
         episode.snapshots = fork.snapshots.prefix(fork.step, fork.same_model)
         return start
 

@@ -38,9 +38,23 @@ from app.render.truth import (
     went_wrong,
     went_wrong_text,
 )
+from gsmn.analysis.intervention import Intervention, InterventionError, paint_from_text, parse_intervention
 
 PARTNER_RGB = (200, 40, 200)
 AS_ORIGINAL = "As the original"
+FORK_MAPS = ("The model's own", "Perfect perception", "Perfect grounding", "Perfect goal", "Painted goal map",
+             "Painted relevance map")
+
+
+def fork_intervention(choice: str, paint: str) -> Intervention | None:
+    """The map intervention the fork controls ask for (`gsmn.analysis.intervention`), or None for the model's own
+    maps; InterventionError says what is wrong."""
+    if choice == FORK_MAPS[0]:
+        return None
+    if choice.startswith("Painted"):
+        return parse_intervention({"map": choice.split()[1], "with": "painted", "paint": paint_from_text(paint)})
+    return parse_intervention({"map": {"perception": "semantic", "grounding": "relevance", "goal": "goal"}[
+        choice.split()[1]]})
 
 
 def who_flew(e: Episode, models: dict) -> str:
@@ -106,6 +120,11 @@ class CompareView:
                                                  hint="fly the policy above and this one side by side")
             self.fork_instruction = gui.add_text("Fork instruction", "", hint="empty: the original's")
             self.fork_policy = gui.add_dropdown("Fork policy", (AS_ORIGINAL, *choices), initial_value=AS_ORIGINAL)
+            self.fork_map = gui.add_dropdown("Fork maps", FORK_MAPS, initial_value=FORK_MAPS[0],
+                                             hint="fly on with a corrected map in place of the model's own: the "
+                                                  "ground truth, or its own map with paint (below)")
+            self.fork_paint = gui.add_text("Paint", "", hint="for a painted map: 'peak 12 20; erase 5 5 2' (x y "
+                                                             "[radius], metres)")
             self.fork_button = gui.add_button("Fork here", icon=viser.Icon.GIT_FORK,
                                               hint="fly on from the step shown, from the simulator's exact state there")
             self.note = gui.add_markdown("")
@@ -167,9 +186,14 @@ class CompareView:
             policy, checkpoint = ("expert", None) if not choice.startswith("Model: ") else (
                 "mirror" if v.mirror.value else "model", v.checkpoint_of(choice))
         step = max(0, min(int(v.view.cursor), len(episode.steps) - 1))
+        try:
+            intervention = fork_intervention(self.fork_map.value, self.fork_paint.value)
+        except InterventionError as e:
+            self.note.content = f"**Not forked:** {e}"
+            return
         self.note.content = f"Forking episode {episode.id} at step {step}..."
         v._post(ForkEpisode(episode.id, step, self.fork_instruction.value.strip() or None, checkpoint, policy,
-                            preempt=True), StartAnswered)
+                            preempt=True, intervention=intervention), StartAnswered)
 
     # -- which episodes go together ---------------------------------------------------------------------------
     def partner_of(self, episode: Episode | None) -> Episode | None:

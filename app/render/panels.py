@@ -177,6 +177,8 @@ def result_markdown(episode: Episode, success_radius: float = 6.0) -> str:
     ambiguous = f"| ambiguous | {note} |\n" if note else ""
     passed = "" if r.success else f"| success region | {region_passage(episode, success_radius)} |\n"
     edited = f"| world edited | {html.escape(edits_text(episode))} |\n" if episode.world_edits else ""
+    if episode.intervention is not None:
+        edited += f"| map changed | {html.escape(intervention_text(episode))} |\n"
     return (f"#### Episode {episode.id}: <span style='color:{colour}'>{verdict}</span>\n"
             f"| | |\n|---|---|\n"
             f"| ended | {how} after **{r.steps}** steps |\n"
@@ -197,6 +199,13 @@ def edits_text(episode: Episode) -> str:
              "add": "added a {noun_phrase} at ({x:.1f}, {y:.1f})"}
     said = "; ".join(words[e.op].format(**e.to_dict()) for e in episode.world_edits)
     return said + (f", at step {episode.fork.step}" if episode.fork is not None else "")
+
+
+def intervention_text(episode: Episode) -> str:
+    """The map intervention the model flew with, in words, and the step it began ("perfect goal: the true goal
+    map, held at every step, from step 12")."""
+    since = f", from step {episode.fork.step}" if episode.fork is not None else ""
+    return episode.intervention.describe() + since
 
 
 def quadrant_text(r, asked: str) -> str:

@@ -28,7 +28,9 @@ them once, and `ground` and `step` take them instead of remaking them at every s
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, fields
+from typing import Protocol
 
 import torch
 import torch.nn as nn
@@ -44,6 +46,15 @@ from gsmn.model.noise import perturb_poses
 from gsmn.model.perception import ResNet13, standardise
 from gsmn.model.projection import ground_points, project_to_ground
 from gsmn.model.semantic_map import accumulate, leaky_integrate
+
+
+class Substitute(Protocol):
+    """A map intervention as the model sees it (made by `gsmn.analysis.intervention`): the map to go on with in
+    place of the model's own world map `key`, and what that map holds beyond the field (None: not substituted)."""
+
+    def __call__(self, key: str, fresh: torch.Tensor) -> torch.Tensor: ...
+
+    def outside(self, key: str) -> torch.Tensor | None: ...
 
 
 @dataclass(frozen=True)
@@ -164,11 +175,13 @@ class GSMN(nn.Module):
 
     def ground(self, semantic_map_w: torch.Tensor, poses: torch.Tensor, sentence_embedding: torch.Tensor | None = None,
                tokens: torch.Tensor | None = None, lengths: torch.Tensor | None = None,
-               kernels: InstructionKernels | None = None) -> GroundingOutputs:
+               kernels: InstructionKernels | None = None, substitute: Substitute | None = None) -> GroundingOutputs:
         """Ground an instruction on semantic maps (B, [T,] C_f, n, n) seen from poses (B, [T,] 3) = x, y, yaw.
 
         Give the instruction as its sentence embedding (B, E) or as token ids (B, L) with lengths (B,);
-        `kernels`, if given, are `instruction_kernels(sentence_embedding)` made beforehand."""
+        `kernels`, if given, are `instruction_kernels(sentence_embedding)` made beforehand. `substitute`, if given,
+        is a map intervention (`gsmn.analysis.intervention.Substitute`): `substitute(key, map_w)` returns the world
+        map the model goes on with in place of its own "relevance_map_w" or "goal_map_w" (GSMN with both filters)."""
         if sentence_embedding is None:
             if tokens is None or lengths is None:
                 raise ValueError("ground needs a sentence_embedding or tokens and lengths")
@@ -180,6 +193,8 @@ class GSMN(nn.Module):
         m = self.config.model
         if self.relevance_filter is not None:
             relevance_w = self.relevance_filter(semantic_map_w, kernels.relevance)  # (B, [T,] 3, n, n)
+            if substitute is not None:
+                relevance_w = substitute("relevance_map_w", relevance_w)
             rest_w = semantic_map_w  # the stack after R: the semantic map (the original's cat_out)
         else:  # identity: the stack is the semantic map, and its readers take its first channels
             relevance_w = semantic_map_w[..., :m.relevance_channels, :, :]
@@ -191,6 +206,10 @@ class GSMN(nn.Module):
             goal_r = self.goal_filter(relevance_r.reshape(B, n_per, *relevance_r.shape[1:]), kernels.goal)
             goal_r = goal_r.reshape(B * n_per, *goal_r.shape[2:])  # (B*T, 2, 2n, 2n)
             goal_w = self.frames.to_world(goal_r, theta_robot_world)  # (B*T, 2, n, n)
+            if substitute is not None and substitute.outside("goal_map_w") is not None:
+                fill = substitute.outside("goal_map_w")  # beyond the field: the substitute's background
+                goal_w = substitute("goal_map_w", goal_w)
+                goal_r = self.frames.to_robot(goal_w - fill, theta_world_robot) + fill
             controller_in = torch.cat([goal_r, relevance_r], dim=1)
         else:  # identity: the controller reads the stack's first channels, R then the next goal_channels
             goal_w = rest_w[..., :m.goal_channels, :, :].reshape(B * n_per, m.goal_channels, *rest_w.shape[-2:])
@@ -235,13 +254,18 @@ class GSMN(nn.Module):
     # -- the policy's step interface -------------------------------------------------------------------------
     def step(self, image: torch.Tensor, T_world_camera: torch.Tensor, K: torch.Tensor, poses: torch.Tensor,
              sentence_embedding: torch.Tensor, state: torch.Tensor | None, generator: torch.Generator | None = None,
-             kernels: InstructionKernels | None = None) -> tuple[GSMNOutputs, torch.Tensor]:
+             kernels: InstructionKernels | None = None, substitute: Substitute | None = None
+             ) -> tuple[GSMNOutputs, torch.Tensor]:
         """One step for B drones: image (B, H, W, 3), T_world_camera (B, 4, 4), K, poses (B, 3), sentence
         embeddings (B, E) (and optionally their `instruction_kernels`), and the carried state (the semantic map,
-        None at the first step). Returns the step's outputs as a GSMNOutputs with T = 1, and the new state."""
+        None at the first step). Returns the step's outputs as a GSMNOutputs with T = 1, and the new state.
+        `substitute`: a map intervention (see `ground`), which may also replace the semantic map, "semantic_map_w"
+        (the new state is then the substitute, which later steps keep integrating)."""
         poses, T_world_camera = self.perturb(poses, T_world_camera, generator)
         p = self.perceive(image, T_world_camera, K, state)
-        g = self.ground(p.semantic_map_w, poses, sentence_embedding, kernels=kernels)
+        if substitute is not None:
+            p = dataclasses.replace(p, semantic_map_w=substitute("semantic_map_w", p.semantic_map_w))
+        g = self.ground(p.semantic_map_w, poses, sentence_embedding, kernels=kernels, substitute=substitute)
 
         def seq(x: torch.Tensor) -> torch.Tensor:
             return x.unsqueeze(1)

@@ -39,6 +39,15 @@ class ModelPolicy:
         self.state = None
         self.last_outputs: Outputs | None = None
         self.generator = torch.Generator()
+        self.intervention = None  # a maker of an episode's map substitute (`intervene`), or None
+        self.substitute = None  # this episode's, made from its task
+
+    def intervene(self, maker, task: Task | None = None) -> None:
+        """Fly with a map intervention: `maker(task)` makes the episode's substitute
+        (`gsmn.analysis.intervention.InterventionMaker`); None stops intervening. With `task`, the substitute
+        starts now, mid-episode (a fork); otherwise at the next `reset`."""
+        self.intervention = maker
+        self.substitute = maker(task) if maker is not None and task is not None else None
 
     def reset(self, task: Task) -> None:
         self.model.eval()
@@ -48,6 +57,7 @@ class ModelPolicy:
             self.kernels = self.model.instruction_kernels(self.sentence_embedding)
         self.state = None
         self.last_outputs = None
+        self.substitute = self.intervention(task) if self.intervention is not None else None
 
     def carried(self) -> tuple:
         """What this policy carries from one step to the next, apart from what its instruction makes at `reset`
@@ -78,8 +88,9 @@ class ModelPolicy:
             K = torch.as_tensor(obs.K, dtype=torch.float32)[None]
             p = obs.pose.position
             poses = torch.tensor([[p[0], p[1], obs.pose.yaw]], dtype=torch.float32)
+            extra = {"substitute": self.substitute} if self.substitute is not None else {}
             outputs, self.state = self.model.step(image, T_world_camera, K, poses, self.sentence_embedding,
-                                                  self.state, self.generator, self.kernels)
+                                                  self.state, self.generator, self.kernels, **extra)
         self.last_outputs = outputs
         drone = self.config.drone
         return PolicyAction(forward_velocity=float(outputs.v[0, 0]) * drone.max_forward_velocity,

@@ -1,0 +1,63 @@
+"""Map interventions over the HTTP API against a real `gsmn serve` (tiny preset, an untrained GSMN given map codes
+from two real calibration flights): a fork at step t flies on from the drone's exact state with the true goal map
+held in place of the model's own, says so in its summary, and a request that cannot be met is refused saying why."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from test_api_server import finished
+
+pytestmark = pytest.mark.server
+HORIZON = 40
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory, untrained_checkpoint, gsmn_serve):
+    from gsmn.analysis.rescue import calibrate, save_codes
+    from gsmn.config import preset, with_overrides
+
+    folder = tmp_path_factory.mktemp("ckpt") / "gsmn"
+    shutil.copytree(untrained_checkpoint, folder, copy_function=shutil.copyfile)
+    save_codes(folder, calibrate(folder, [85, 86], with_overrides(preset("tiny"), {"task.horizon": "12"})))
+    serve = gsmn_serve(tmp_path_factory.mktemp("data"), folder, horizon=HORIZON)
+    yield serve.client
+    serve.stop(timeout=20)
+
+
+def test_a_fork_flies_on_with_the_true_goal_map_held(client):
+    original = finished(client, client.post("/api/episodes", json={"env_id": 70}).json()["id"])
+    assert original["status"] == "finished", original["error"]
+    forked = client.post(f"/api/episodes/{original['id']}/fork",
+                         json={"step": 8, "intervention": {"map": "goal", "with": "truth"}})
+    assert forked.status_code == 201, forked.text
+    fork = finished(client, forked.json()["id"])
+    assert fork["status"] == "finished", fork["error"]
+    assert fork["intervention"] == {"map": "goal", "with": "truth", "hold": True} and original["intervention"] is None
+    a = client.get(f"/api/episodes/{original['id']}/steps").json()["steps"]
+    b = client.get(f"/api/episodes/{fork['id']}/steps").json()["steps"]
+    assert [(s["x"], s["y"]) for s in b[:8]] == [(s["x"], s["y"]) for s in a[:8]]
+    assert (b[8]["x"], b[8]["y"], b[8]["z"]) == pytest.approx((a[8]["x"], a[8]["y"], a[8]["z"]), abs=1e-9)
+    assert any(abs(p["x"] - q["x"]) + abs(p["y"] - q["y"]) > 1e-6 for p, q in zip(a[9:], b[9:], strict=False)), \
+        "the held goal map changed what the model did"
+
+    def goal_png(episode: dict, step: int) -> bytes:
+        return client.get(f"/api/episodes/{episode['id']}/steps/{step}/maps/goal.png").content
+
+    last = min(len(a), len(b)) - 1
+    assert goal_png(fork, 9) == goal_png(fork, last), "the true goal map is the same at every step"
+    assert goal_png(original, 9) != goal_png(original, last)
+
+
+@pytest.mark.parametrize("payload, words", [
+    ({"step": 3, "intervention": {"map": "goal", "hold": False}}, "can only be held"),
+    ({"step": 3, "intervention": {"map": "goal", "with": "painted", "paint": [{"op": "dab", "x": 1, "y": 1}]}},
+     "each paint is"),
+    ({"step": 3, "policy": "expert", "intervention": {"map": "goal"}}, "fork with policy 'model'"),
+])
+def test_an_intervention_that_cannot_be_made_is_refused_saying_why(client, payload, words):
+    original = finished(client, client.post("/api/episodes", json={"env_id": 71}).json()["id"])
+    refused = client.post(f"/api/episodes/{original['id']}/fork", json=payload)
+    assert refused.status_code == 422 and words in refused.json()["detail"], refused.text
