@@ -478,7 +478,8 @@ def cmd_analyze_rescue(args: argparse.Namespace) -> int:
         stages, replayed = rescue.stages_of(failures, folder, config, args.record, args.workers)
         flown = {flag: rescue.fly_intervention(flag, sorted(stages), folder, config, out, args.workers,
                                                on_episode=lambda r: bar.update(1)) for flag in flags}
-    table = rescue.rescue_table(stages, flown, replayed)
+    table = rescue.rescue_table(stages, {f: [(r.env_id, r.success) for r in records] for f, records in flown.items()},
+                                replayed)
     table.update(evaluation=args.results, checkpoint=str(folder))
     write_json(out / "rescue.json", table)
     print(rescue.rescue_markdown(table))

@@ -191,7 +191,7 @@ def test_an_older_record_gains_the_facts_table(tmp_path):
     raw.close()
     db = Database(path)
     assert db.facts(eid) == {} and len(db.episodes(eid)) == 6
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == 5
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == 6
     db.close()
 
 

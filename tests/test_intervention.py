@@ -210,7 +210,7 @@ def test_a_rescue_table_counts_failures_saved_per_stage():
     stages = {1: "grounding", 2: "grounding", 3: "perception", 4: "goal"}
     flown = {"truth-relevance": [record(1, True), record(2, True), record(3, False), record(4, False)],
              "truth-goal": [record(1, False), record(2, True), record(3, True), record(4, True)]}
-    table = rescue_table(stages, flown, replayed=[9])
+    table = rescue_table(stages, {f: [(r.env_id, r.success) for r in rs] for f, rs in flown.items()}, replayed=[9])
     assert table["failures"] == 4 and table["stages"] == {"goal": 1, "grounding": 2, "perception": 1}
     assert table["interventions"]["truth-relevance"]["per_stage"]["grounding"]["rescued"] == 2
     assert table["interventions"]["truth-goal"]["all"]["rescued"] == 3

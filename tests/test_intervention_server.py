@@ -7,7 +7,6 @@ from __future__ import annotations
 import shutil
 
 import pytest
-
 from test_api_server import finished
 
 pytestmark = pytest.mark.server
@@ -61,3 +60,37 @@ def test_an_intervention_that_cannot_be_made_is_refused_saying_why(client, paylo
     original = finished(client, client.post("/api/episodes", json={"env_id": 71}).json()["id"])
     refused = client.post(f"/api/episodes/{original['id']}/fork", json=payload)
     assert refused.status_code == 422 and words in refused.json()["detail"], refused.text
+
+
+def evaluation_done(client, evaluation_id: int, timeout: float = 240.0) -> dict:
+    from support import poll
+
+    return poll(lambda: client.get(f"/api/evaluations/{evaluation_id}").json(),
+                lambda e: e["status"] not in ("queued", "running"), f"evaluation {evaluation_id}", timeout, 0.5)
+
+
+def test_an_evaluations_failures_flown_again_with_the_true_goal_map(client):
+    """An evaluation job, then its failures flown again with the true goal map as another job: the rescue table
+    counts, per attributed stage, the failures the second one turned into successes."""
+    first = evaluation_done(client, client.post("/api/evaluations", json={"env_ids": [70, 71, 72]}).json()["id"])
+    assert first["status"] == "finished", first["error"]
+    episodes = client.get(f"/api/evaluations/{first['id']}/episodes").json()
+    failures = [e["env_id"] for e in episodes if not e["success"]]
+    assert failures, "the untrained model fails"
+    started = client.post(f"/api/evaluations/{first['id']}/rescue", json={"intervention": "truth-goal"})
+    assert started.status_code == 201, started.text
+    rescue = started.json()
+    assert rescue["intervention"] == "truth-goal" and rescue["baseline_id"] == first["id"]
+    assert rescue["env_ids"] == failures and "perfect goal" in rescue["label"]
+    rescue = evaluation_done(client, rescue["id"])
+    assert rescue["status"] == "finished", rescue["error"]
+    saved = {e["env_id"] for e in client.get(f"/api/evaluations/{rescue['id']}/episodes").json() if e["success"]}
+    table = client.get(f"/api/evaluations/{first['id']}/rescue").json()
+    assert table["failures"] == len(failures) and table["evaluations"] == {"truth-goal": rescue["id"]}
+    row = table["interventions"]["truth-goal"]
+    assert row["all"]["of"] == len(failures) and row["all"]["rescued"] == len(saved)
+    assert sum(r["of"] for r in row["per_stage"].values()) == len(failures)
+    again = client.post(f"/api/evaluations/{rescue['id']}/rescue", json={"intervention": "truth-goal"})
+    assert again.status_code == 422 and "flew with an intervention already" in again.json()["detail"]
+    assert client.post(f"/api/evaluations/{first['id']}/rescue", json={"intervention": "truth-camera"}).status_code \
+        == 422

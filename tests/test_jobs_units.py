@@ -91,13 +91,17 @@ def old_schema(version: int) -> str:
     assert len(region) == 2
     for line in region:
         schema = schema.replace(line + "\n", "", 1)
+    intervention = [x for x in schema.splitlines() if x.strip().startswith("intervention")]
+    assert len(intervention) == 1
+    schema = schema.replace(intervention[0] + "\n", "", 1).replace(
+        "mirror_ensemble INTEGER NOT NULL DEFAULT 0,", "mirror_ensemble INTEGER NOT NULL DEFAULT 0", 1)
     if version == 1:
         line = [x for x in schema.splitlines() if x.strip().startswith("mirror_ensemble")]
         assert len(line) == 1
         schema = schema.replace("cancel_requested INTEGER NOT NULL DEFAULT 0,\n" + line[0] + "\n",
                                 "cancel_requested INTEGER NOT NULL DEFAULT 0\n", 1)
         assert "mirror_ensemble" not in schema
-    assert "region_" not in schema
+    assert "region_" not in schema and "intervention" not in schema
     return schema
 
 
@@ -120,7 +124,8 @@ def test_a_record_of_schema_version_1_gains_the_mirror_column_and_keeps_its_rows
     db.close()
     db = Database(path)
     assert db.evaluation(new).mirror_ensemble is True and db.evaluation(e.id).mirror_ensemble is False
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.jobs.db.SCHEMA_VERSION == 5
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == app.jobs.db.SCHEMA_VERSION == 6
+    assert db.evaluation(e.id).intervention is None
     db.close()
 
 
@@ -148,6 +153,28 @@ def test_a_record_of_schema_version_2_gains_the_region_columns_as_not_known(tmp_
     db = Database(path)
     assert db.episode(1, 71).region_steps == [30, 31, 32] and db.episode(1, 71).region_stop_p == 0.25
     assert [r.env_id for r in db.episodes(1, entered_region=True)] == [71]
+    db.close()
+
+
+def test_a_record_of_schema_version_5_gains_the_intervention_column_as_none(tmp_path):
+    """Evaluations recorded before map interventions (schema 5) read back as flown with the model's own maps; an
+    intervened evaluation recorded after keeps its intervention across a reopening."""
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as old:
+        old.executescript(old_schema(5).replace("CREATE TABLE IF NOT EXISTS episodes (",
+                                                "CREATE TABLE IF NOT EXISTS episodes (\n    region_steps TEXT,\n"
+                                                "    region_stop_p REAL,", 1))
+        old.execute("INSERT INTO evaluations (status, created, system, checkpoint, env_ids, label, source, total, "
+                    "mirror_ensemble) VALUES ('finished', 1.0, 'gsmn', '/c', '[70]', 'old', 'dashboard', 1, 0)")
+        old.execute("PRAGMA user_version=5")
+    old.close()
+    db = Database(path)
+    assert db.evaluation(1).intervention is None
+    new = db.add_evaluation(system="gsmn", checkpoint="/c", env_ids=[70], label="rescue", baseline_id=1,
+                            intervention="truth-goal")
+    db.close()
+    db = Database(path)
+    assert db.evaluation(new).intervention == "truth-goal" and db.evaluation(1).intervention is None
     db.close()
 
 

@@ -173,7 +173,7 @@ def test_an_older_record_gains_the_tables_and_keeps_its_rows(tmp_path):
     db = Database(path)
     assert db.evaluation(evaluation).label == "old"
     assert db.next_kept_id() == 1 and db.kept_bytes() == 0 and db.kept_counts() == {"episodes": 0, "pinned": 0}
-    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION == 5
+    assert sqlite3.connect(path).execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION == 6
     db.close()
 
 

@@ -19,7 +19,7 @@ from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
 from app.jobs.evaluation_export import FORMATS, export_evaluation, export_name, finite
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
-from app.jobs.results import replay_policy
+from app.jobs.results import replay_policy, rescue_of
 from app.jobs.settings import MAX_ROLLOUTS, RUN_PRESETS, run_settings
 from app.live.commands import NotFound, RunnerError, StartEpisode
 from gsmn.attribution import STAGES
@@ -28,6 +28,7 @@ router = APIRouter()
 SYSTEMS = Literal["gsmn", "gsmn-no-plan", "gs-fpv", "gs-fpv-mem", "oracle"]
 STATUS = Literal["queued", "running", "finished", "failed", "cancelled"]
 EvaluationId = Annotated[int, path_id("evaluation")]
+Intervention = Literal["truth-semantic", "truth-relevance", "truth-goal"]
 RunId = Annotated[int, path_id("run")]
 
 
@@ -46,6 +47,13 @@ class EvaluationRequest(Strict):
                          "each; 1 leaves the live view its share)")
     mirror_ensemble: bool = Field(False, description="fly the model as a test-time mirror ensemble (it also flies "
                                   "the mirror image of each step and the two actions are averaged; not in the paper)")
+    intervention: Intervention | None = Field(None, description="fly a GSMN with this truth map in place of its own "
+                                              "from the first step (gsmn eval --intervene; docs/model.md)")
+
+
+class RescueRequest(Strict):
+    intervention: Intervention = Field(..., description="the truth map the failures fly with: perfect perception "
+                                       "(truth-semantic), grounding (truth-relevance) or goal (truth-goal)")
 
 
 class ImportRequest(Strict):
@@ -70,6 +78,8 @@ class EvaluationModel(BaseModel):
     run_id: int | None
     source: Literal["dashboard", "import"]
     mirror_ensemble: bool = Field(description="flown as a test-time mirror ensemble")
+    intervention: str | None = Field(None, description="the truth map it flew with (gsmn eval --intervene); null: "
+                                     "the model's own maps")
     done: int = Field(description="episodes finished")
     total: int
     fraction: float
@@ -166,7 +176,8 @@ class RunModel(BaseModel):
 def evaluation_model(jobs: JobManager, e: Evaluation) -> EvaluationModel:
     return EvaluationModel(id=e.id, status=e.status, label=e.label, system=e.system, checkpoint=e.checkpoint,
                            env_ids=e.env_ids, baseline_id=e.baseline_id, run_id=e.run_id, source=e.source,
-                           mirror_ensemble=e.mirror_ensemble, done=e.done, total=e.total,
+                           mirror_ensemble=e.mirror_ensemble, intervention=e.intervention, done=e.done,
+                           total=e.total,
                            fraction=e.done / max(1, e.total), summary=finite(e.summary),
                            stages=jobs.db.stage_counts(e.id), regions=jobs.db.region_counts(e.id), error=e.error,
                            created=e.created, started=e.started, finished=e.finished)
@@ -196,8 +207,22 @@ def create_evaluation(request: EvaluationRequest, jobs: Jobs) -> EvaluationModel
             raise RunnerError(f"run {run.id} is {run.status}; only a finished run has a checkpoint")
         checkpoint = run.checkpoint
     e = jobs.start_evaluation(checkpoint, request.system, request.split, request.episodes, request.env_ids,
-                              request.baseline_id, request.run_id, request.workers, request.mirror_ensemble)
+                              request.baseline_id, request.run_id, request.workers, request.mirror_ensemble,
+                              request.intervention)
     return evaluation_model(jobs, e)
+
+
+@router.post("/api/evaluations/{evaluation_id}/rescue", response_model=EvaluationModel, status_code=201,
+             responses=responses(404, 409, 422, 503),
+             summary="Fly an evaluation's failures again with a truth map intervention (a new evaluation)")
+def rescue_failures(evaluation_id: EvaluationId, request: RescueRequest, jobs: Jobs) -> EvaluationModel:
+    return evaluation_model(jobs, jobs.rescue_failures(evaluation_id, request.intervention))
+
+
+@router.get("/api/evaluations/{evaluation_id}/rescue", responses=responses(404, 422),
+            summary="How many of an evaluation's failures each truth map rescued, per attributed stage")
+def rescue_table(evaluation_id: EvaluationId, jobs: Jobs) -> dict:
+    return finite(rescue_of(jobs.db, jobs.evaluation(evaluation_id)))
 
 
 @router.get("/api/evaluations", response_model=list[EvaluationModel], responses=responses(503),

@@ -59,6 +59,7 @@ class Evaluation:
     error: str | None
     cancel_requested: bool
     mirror_ensemble: bool = False  # flown as a test-time mirror ensemble (schema 2)
+    intervention: str | None = None  # flown with a map intervention, e.g. "truth-goal" (schema 6)
 
 
 @dataclass(frozen=True)
@@ -180,6 +181,10 @@ class Database:
         if 1 <= version <= 2:  # the two columns version 3 added, NULL (not known) in the rows recorded before
             self._db.execute("ALTER TABLE episodes ADD COLUMN region_steps TEXT")
             self._db.execute("ALTER TABLE episodes ADD COLUMN region_stop_p REAL")
+        if 1 <= version <= 5 and "intervention" not in {
+                row[1] for row in self._db.execute("PRAGMA table_info(evaluations)")}:
+            # the column version 6 added: NULL, no intervention, in the rows recorded before
+            self._db.execute("ALTER TABLE evaluations ADD COLUMN intervention TEXT")
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
 
@@ -220,11 +225,13 @@ class Database:
     # -- evaluations -------------------------------------------------------------------------------------------
     def add_evaluation(self, *, system: str, checkpoint: str | None, env_ids: list[int], label: str,
                        source: str = "dashboard", status: str = QUEUED, baseline_id: int | None = None,
-                       run_id: int | None = None, mirror_ensemble: bool = False) -> int:
+                       run_id: int | None = None, mirror_ensemble: bool = False,
+                       intervention: str | None = None) -> int:
         return self._insert("evaluations", {
             "status": status, "created": time.time(), "system": system, "checkpoint": checkpoint,
             "env_ids": [int(e) for e in env_ids], "label": label, "baseline_id": baseline_id, "run_id": run_id,
-            "source": source, "total": len(env_ids), "mirror_ensemble": mirror_ensemble})
+            "source": source, "total": len(env_ids), "mirror_ensemble": mirror_ensemble,
+            "intervention": intervention})
 
     def update_evaluation(self, evaluation_id: int, **values: Any) -> None:
         self._update("evaluations", evaluation_id, values)

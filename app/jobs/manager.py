@@ -47,6 +47,7 @@ from app.jobs.runs import DAGGER_KINDS, run_command, run_complete, run_progress
 from app.jobs.settings import RunSettings, run_config
 from app.jobs.supervisor import Handle, Supervisor, alive
 from app.live.commands import Forbidden, NotFound, RunnerError, TooLarge
+from gsmn.analysis.intervention import FLAG_LABELS as INTERVENTION_LABELS
 from gsmn.config import RunConfig
 
 log = logging.getLogger("gsmn.dashboard")
@@ -98,12 +99,12 @@ class JobManager:
     def start_evaluation(self, checkpoint: str | None = None, system: str | None = None, split: str | None = None,
                          episodes: int | None = None, env_ids: list[int] | None = None,
                          baseline_id: int | None = None, run_id: int | None = None, workers: int = 1,
-                         mirror_ensemble: bool = False) -> Evaluation:
+                         mirror_ensemble: bool = False, intervention: str | None = None) -> Evaluation:
         """Launch `gsmn eval` on a split (its first `episodes`), a list of ids, or the ids of `baseline_id`, in
         `workers` processes of one torch thread each; `mirror_ensemble` flies the model as a test-time mirror
-        ensemble (`--mirror-ensemble`)."""
-        from gsmn.world.spec import SPLITS, split_env_ids
-
+        ensemble (`--mirror-ensemble`); `intervention` ("truth-goal", ...) flies a GSMN with that map intervention
+        from the first step (`--intervene`): with `baseline_id` and that evaluation's failures as `env_ids`, the
+        rescue of its failures (`rescue_failures`)."""
         if system == "oracle" and mirror_ensemble:
             raise RunnerError("the expert has no mirror ensemble: it is a learned model's option")
         if system == "oracle":
@@ -111,6 +112,37 @@ class JobManager:
         else:
             ckpt = self.resolve_checkpoint(checkpoint)
             system = evaluation_system(system, checkpoint is not None, _checkpoint_kind(ckpt), ckpt)
+        ids, label = self._evaluation_ids(split, episodes, env_ids, baseline_id)
+        if not 1 <= workers <= CORES:
+            raise RunnerError(f"workers must be between 1 and {CORES} (this machine's cores), got {workers}")
+        if mirror_ensemble:
+            label += ", mirror ensemble"
+        if intervention is not None:
+            self._check_intervention(intervention, system, ckpt, mirror_ensemble)
+            label += f", {INTERVENTION_LABELS[intervention]}"
+        with self.supervisor.lock:
+            self.supervisor.check_limit("evaluation", self.max_evaluations, "--max-evaluations")
+            eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,
+                                         label=label, baseline_id=baseline_id, run_id=run_id,
+                                         mirror_ensemble=mirror_ensemble, intervention=intervention)
+            folder = new_job_folder(self.root / "evaluations", eid)
+            self.db.update_evaluation(eid, folder=str(folder))
+            (folder / "config.json").write_text(self.config.to_json() + "\n")
+            command = [self.python, "-m", "gsmn.cli", "eval", "--system", system,
+                       *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
+                       "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
+                       "--record", str(folder / "episodes"), "--progress", str(folder / "progress.jsonl"),
+                       "--json", str(folder / "results.json"), "--config", str(folder / "config.json"),
+                       *(["--mirror-ensemble"] if mirror_ensemble else []),
+                       *(["--intervene", intervention] if intervention else [])]
+            self.supervisor.launch("evaluation", eid, folder, command)
+        return self.db.evaluation(eid)
+
+    def _evaluation_ids(self, split: str | None, episodes: int | None, env_ids: list[int] | None,
+                        baseline_id: int | None) -> tuple[list[int], str]:
+        """The environments an evaluation flies, checked, and how its label names them."""
+        from gsmn.world.spec import SPLITS, split_env_ids
+
         baseline = None
         if baseline_id is not None:
             baseline = self.db.evaluation(baseline_id)
@@ -135,30 +167,42 @@ class JobManager:
             raise RunnerError(f"need 1 to {MAX_ENVIRONMENTS} non-negative environment ids, got {len(ids)}")
         if len(set(ids)) != len(ids):
             raise RunnerError("environment ids repeat")
-        if not 1 <= workers <= CORES:
-            raise RunnerError(f"workers must be between 1 and {CORES} (this machine's cores), got {workers}")
-        if mirror_ensemble:
-            label += ", mirror ensemble"
-        with self.supervisor.lock:
-            self.supervisor.check_limit("evaluation", self.max_evaluations, "--max-evaluations")
-            eid = self.db.add_evaluation(system=system, checkpoint=str(ckpt) if ckpt else None, env_ids=ids,
-                                         label=label, baseline_id=baseline_id, run_id=run_id,
-                                         mirror_ensemble=mirror_ensemble)
-            folder = new_job_folder(self.root / "evaluations", eid)
-            self.db.update_evaluation(eid, folder=str(folder))
-            (folder / "config.json").write_text(self.config.to_json() + "\n")
-            command = [self.python, "-m", "gsmn.cli", "eval", "--system", system,
-                       *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
-                       "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
-                       "--record", str(folder / "episodes"), "--progress", str(folder / "progress.jsonl"),
-                       "--json", str(folder / "results.json"), "--config", str(folder / "config.json"),
-                       *(["--mirror-ensemble"] if mirror_ensemble else [])]
-            self.supervisor.launch("evaluation", eid, folder, command)
-        return self.db.evaluation(eid)
+        return ids, label
 
     def cancel_evaluation(self, evaluation_id: int) -> Evaluation:
         self.supervisor.cancel("evaluation", self.evaluation(evaluation_id))
         return self.evaluation(evaluation_id)
+
+    @staticmethod
+    def _check_intervention(flag: str, system: str, ckpt, mirror_ensemble: bool) -> None:
+        from gsmn.analysis.intervention import FLAGS, InterventionError, codes_for
+
+        if flag not in FLAGS:
+            raise RunnerError(f"intervention must be one of {', '.join(FLAGS)}, not {flag!r}")
+        if system not in ("gsmn", "gsmn-no-plan") or mirror_ensemble:
+            raise RunnerError("a map intervention flies one GSMN, not the expert, a first-person model or an "
+                              "ensemble")
+        try:
+            codes_for(ckpt)
+        except InterventionError as e:
+            raise RunnerError(str(e)) from e
+
+    def rescue_failures(self, evaluation_id: int, intervention: str) -> Evaluation:
+        """Fly an evaluation's failures again with a truth map intervention from the first step: how many it
+        rescues, per attributed stage, is the Failures tab's rescue table (`gsmn analyze rescue` on the command
+        line)."""
+        e = self.evaluation(evaluation_id)
+        if e.intervention is not None:
+            raise RunnerError(f"evaluation {e.id} flew with an intervention already: rescue the failures of one "
+                              "that flew with the model's own maps")
+        failures = [r.env_id for r in self.db.episodes(e.id, failed_only=True)]
+        if not failures:
+            raise RunnerError(f"evaluation {e.id} has no failure to rescue")
+        rescue = self.start_evaluation(e.checkpoint, e.system, env_ids=failures, baseline_id=e.id,
+                                       intervention=intervention)
+        self.db.update_evaluation(rescue.id, label=f"the {len(failures)} failures of #{e.id}, "
+                                                   f"{INTERVENTION_LABELS[intervention]}")
+        return self.db.evaluation(rescue.id)
 
     def resume_evaluation(self, evaluation_id: int) -> Evaluation:
         """Fly the rest of a cancelled or failed evaluation, as the same evaluation in its own folder: its command

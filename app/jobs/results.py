@@ -197,3 +197,22 @@ def before_for_run(db: Database, run, baseline: Evaluation) -> Evaluation | None
                 and sorted(e.env_ids) == sorted(baseline.env_ids) and e.mirror_ensemble == baseline.mirror_ensemble):
             return e
     return None
+
+
+RESCUE_ORDER = ("truth-semantic", "truth-relevance", "truth-goal")
+
+
+def rescue_of(db: Database, e: Evaluation) -> dict:
+    """The rescue table of `e`'s failures (`gsmn.analysis.rescue.rescue_table`), from the evaluations that flew them
+    with a truth map intervention (`JobManager.rescue_failures`; the latest of each), with `evaluations` (their ids
+    by intervention) and `running` (those still flying: status and progress)."""
+    from gsmn.analysis.rescue import rescue_table
+
+    latest = {x.intervention: x for x in db.evaluations() if x.baseline_id == e.id and x.intervention}
+    stages = {r.env_id: r.stage for r in db.episodes(e.id, failed_only=True)}
+    flown = {flag: [(r.env_id, r.success) for r in db.episodes(latest[flag].id)]
+             for flag in RESCUE_ORDER if flag in latest}
+    table = rescue_table(stages, flown)
+    table["evaluations"] = {flag: x.id for flag, x in latest.items()}
+    table["running"] = {flag: f"{x.status}, {x.done}/{x.total}" for flag, x in latest.items() if x.status != FINISHED}
+    return table

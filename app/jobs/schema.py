@@ -1,10 +1,11 @@
 """The dashboard record's tables (SQLite) and their version; `app.jobs.db` opens, upgrades and reads them."""
 
-SCHEMA_VERSION = 5  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
+SCHEMA_VERSION = 6  # 2: evaluations.mirror_ensemble; 3: episodes.region_steps and region_stop_p (an older
 # record gains the columns on opening: 0 for mirror_ensemble, NULL, "not known", for the region); 4: the tables
 # kept_episodes and kept_steps (every episode flown in the page or over the API, app.jobs.kept; an older record gains
 # them empty); 5: the table episode_facts (each evaluated episode's slice attributes and map readings,
-# gsmn.analysis.slices; an older record gains it empty, and its evaluations' facts are computed when first analysed)
+# gsmn.analysis.slices; an older record gains it empty, and its evaluations' facts are computed when first analysed);
+# 6: evaluations.intervention (the map intervention it flew with, gsmn eval --intervene; NULL in older rows: none)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -28,7 +29,8 @@ CREATE TABLE IF NOT EXISTS evaluations (
     summary TEXT,                   -- JSON: gsmn.task.metrics.Summary.to_dict()
     error TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
-    mirror_ensemble INTEGER NOT NULL DEFAULT 0  -- flown as a test-time mirror ensemble (gsmn eval --mirror-ensemble)
+    mirror_ensemble INTEGER NOT NULL DEFAULT 0, -- flown as a test-time mirror ensemble (gsmn eval --mirror-ensemble)
+    intervention TEXT               -- the map intervention it flew with (gsmn eval --intervene FLAG); NULL: none
 );
 CREATE TABLE IF NOT EXISTS episodes (
     evaluation_id INTEGER NOT NULL REFERENCES evaluations(id),

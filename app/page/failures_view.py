@@ -14,7 +14,7 @@ import viser.uplot
 
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
 from app.jobs.evaluation_export import export_evaluation, export_name
-from app.jobs.results import replay_policy
+from app.jobs.results import replay_policy, rescue_of
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
@@ -29,6 +29,7 @@ from app.render.jobs_panels import (
     episode_label,
     error_summary,
     note_html,
+    rescue_html,
     resume_hint,
     sort_rows,
     stage_title,
@@ -40,6 +41,7 @@ from gsmn.evaluation import parse_env_ids
 from gsmn.world.spec import SPLITS
 
 ROWS = 12  # episode buttons per page of the failure browser
+RESCUES = {"perception": "truth-semantic", "grounding": "truth-relevance", "goal": "truth-goal"}
 REGION_CHOICES = {"flew through it": True, "never entered": False}  # the "Success region" filter
 ALL = "all"
 
@@ -91,6 +93,10 @@ class FailuresTab:
                 self.download = gui.add_button_group("Download", ("CSV", "JSON"),
                                                      hint="this evaluation's results: one row per episode, with its "
                                                           "split and what flew it (JSON: with the summary)")
+                self.rescue = gui.add_button_group(
+                    "Rescue with true", tuple(RESCUES), hint="fly this evaluation's failures again from the start "
+                    "with that stage's true map in place of the model's own: how many each saves, by the stage "
+                    "they are attributed to, shows above (docs/model.md, 'Interventions')")
                 self.failed_only = gui.add_checkbox("Failed only", True)
                 self.landmark = gui.add_dropdown("Landmark", (ALL,))
                 self.side = gui.add_dropdown("Side", (ALL, "left", "right", "front", "back"))
@@ -119,6 +125,26 @@ class FailuresTab:
         held = len(self.jobs.db.episodes(e.id))
         self.list_note.content = (f"Downloaded {export_name(e, fmt)}: {held} episode{'s' if held != 1 else ''}"
                                   + ("." if e.status == "finished" else f" of {e.total} ({e.status})."))
+
+    def _rescue(self, stage: str) -> None:
+        """Start the evaluation that flies the failures shown with a truth map intervention (`rescue_failures`)."""
+        if self.evaluation_id is None:
+            self.list_note.content = "No evaluation yet: evaluate a checkpoint first."
+            return
+        try:
+            e = self.jobs.rescue_failures(self.evaluation_id, RESCUES[stage])
+        except RunnerError as err:
+            self.list_note.content = f"**Not started:** {html.escape(str(err))}"
+            return
+        self.list_note.content = f"Evaluation {e.id} started: {html.escape(e.label)}."
+        self._refresh()
+
+    def _rescue_table(self, e: Evaluation) -> str:
+        """The rescue table of `e`'s failures (`app.jobs.results.rescue_of`), or "" when none was flown."""
+        if e.intervention:
+            return ""
+        table = rescue_of(self.jobs.db, e)
+        return rescue_html(table, table["running"]) if table["evaluations"] else ""
 
     def _evaluate(self) -> None:
         choice = self.eval_checkpoint.value
@@ -184,7 +210,7 @@ class FailuresTab:
             self.landmark.options = landmarks
             self.landmark.value = keep
         counts = self.jobs.db.stage_counts(e.id)
-        self.summary.content = summary_html(e, counts, self.jobs.db.region_counts(e.id))
+        self.summary.content = summary_html(e, counts, self.jobs.db.region_counts(e.id)) + self._rescue_table(e)
         stage_of_title = {stage_title(k): k for k in reported_stages(counts)}  # the stages the bars show
         if tuple(self.stage.options) != (ALL, *stage_of_title):
             keep = self.stage.value if self.stage.value in stage_of_title and not reset_filters else ALL

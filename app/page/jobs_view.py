@@ -118,6 +118,7 @@ class JobsView(FailuresTab, FinetuneTab, AnalysisTab, RunnerListener):
             button.on_click(lambda _, k=k: put(RowPressed(k)))
         self.pager.on_click(lambda e: put(Pressed("page", e.target.value)))
         self.download.on_click(lambda e: put(Pressed("download", e.target.value)))
+        self.rescue.on_click(lambda e: put(Pressed("rescue", e.target.value)))
         for box in (self.eval_episodes, self.eval_ids):
             box.on_update(lambda e: e.client is not None and put(Pressed("estimate", "")))
         self.run_preset.on_update(lambda e: e.client is not None and put(PresetChosen()))
@@ -186,6 +187,8 @@ class JobsView(FailuresTab, FinetuneTab, AnalysisTab, RunnerListener):
                 self._show_estimate()
             case Pressed("download", fmt):
                 self._download(fmt)
+            case Pressed("rescue", stage):
+                self._rescue(stage)
             case RowPressed(k):
                 if self.page * ROWS + k < len(self.rows):
                     self._replay(self.rows[self.page * ROWS + k])

@@ -106,6 +106,36 @@ def region_summary(regions: dict[str, int] | None) -> str:
 _STAGE_COLOURS = {**STAGE_COLOURS, "unattributed": "#999"}
 
 
+def rescue_html(table: dict, running: dict[str, str] | None = None) -> str:
+    """The rescue table under an evaluation's attribution bars (`gsmn.analysis.rescue.rescue_table`): per truth
+    intervention, how many of the failures attributed to each stage it turned into successes, of those flown so far;
+    `running`: the interventions still flying, by flag, with their status."""
+    flags = list(table["interventions"])
+    if not flags:
+        return ""
+    from gsmn.analysis.intervention import FLAG_LABELS
+
+    def cell(r: dict) -> str:
+        if not r["of"]:
+            return "<td>-</td>"
+        return (f'<td title="95 % interval {100 * r["low"]:.0f} to {100 * r["high"]:.0f} %"><b>{r["rescued"]}</b>/'
+                f'{r["of"]}</td>')
+
+    head = "".join(f"<th>{html.escape(FLAG_LABELS.get(f, f))}</th>" for f in flags)
+    rows = [f"<tr><td>{html.escape(stage_title(s) or 'not attributed')}</td>"
+            + "".join(cell(table["interventions"][f]["per_stage"][s]) for f in flags) + "</tr>"
+            for s in table["stages"]]
+    rows.append("<tr><td><b>all failures</b></td>" + "".join(cell(table["interventions"][f]["all"]) for f in flags)
+                + "</tr>")
+    flying = "".join(f"; {html.escape(FLAG_LABELS.get(f, f))} {html.escape(status)}" for f, status in
+                     (running or {}).items())
+    return (f'<div class="gsmn-rescue" style="font-size:12px;margin-top:6px"><div style="font-weight:600">'
+            f"Rescued by a true map (failures flown again from the start with it){flying}</div>"
+            f'<table style="border-collapse:collapse;font-size:12px"><tr><th>attributed to</th>{head}</tr>'
+            f"{''.join(rows)}</table><div>rescued / flown; a failure attributed to a stage should be rescued most "
+            "by that stage's true map</div></div>")
+
+
 SORTS = {"flown order": None, "environment id": lambda r: r.env_id,
          "distance to goal, far first": lambda r: -r.goal_distance,
          "distance to goal, near first": lambda r: r.goal_distance}

@@ -41,6 +41,7 @@ MAPS = ("semantic", "relevance", "goal")
 KEYS = {"semantic": "semantic_map_w", "relevance": "relevance_map_w", "goal": "goal_map_w"}
 LABELS = {"semantic": "perfect perception", "relevance": "perfect grounding", "goal": "perfect goal"}
 FLAGS = tuple(f"truth-{m}" for m in MAPS)  # `gsmn eval --intervene`
+FLAG_LABELS = {f"truth-{m}": LABELS[m] for m in MAPS}
 CODES_FILE = "map_codes.safetensors"
 GOAL_WINDOW = 4  # r: the goal template spans (2r+1)^2 cells, 3.75 m each way at 0.9375 m cells
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from gsmn.analysis.intervention import (
@@ -132,10 +132,11 @@ def fly_intervention(flag: str, env_ids: Sequence[int], folder: Path | str, conf
     return records
 
 
-def rescue_table(stages: dict[int, str], flown: dict[str, Sequence[EpisodeRecord]], replayed: Sequence[int] = ()
-                 ) -> dict:
-    """Rescue rates: per intervention, the failures it turned into successes, over all and per attributed stage,
-    with 95 % Wilson intervals."""
+def rescue_table(stages: dict[int, str | None], flown: dict[str, Iterable[tuple[int, bool]]],
+                 replayed: Sequence[int] = ()) -> dict:
+    """Rescue rates: per intervention (its flights as (env_id, success) pairs), the failures it turned into
+    successes, over all and per attributed stage, with 95 % Wilson intervals; a failure it has not flown (yet) is
+    not counted in its row ("of" says how many it flew)."""
     by_stage: dict[str, list[int]] = {}
     for env_id, stage in sorted(stages.items()):
         by_stage.setdefault(stage or "not read", []).append(env_id)
@@ -145,10 +146,12 @@ def rescue_table(stages: dict[int, str], flown: dict[str, Sequence[EpisodeRecord
         return {"rescued": k, "of": n, "rate": k / n if n else None, "low": lo, "high": hi}
 
     table = {}
-    for flag, records in flown.items():
-        saved = {r.env_id for r in records if r.success}
-        table[flag] = {"all": rate(len(saved & set(stages)), len(stages)),
-                       "per_stage": {s: rate(len(saved & set(ids)), len(ids)) for s, ids in sorted(by_stage.items())}}
+    for flag, pairs in flown.items():
+        outcome = dict(pairs)
+        saved = {e for e, success in outcome.items() if success}
+        table[flag] = {"all": rate(len(saved & set(stages)), len(set(outcome) & set(stages))),
+                       "per_stage": {s: rate(len(saved & set(ids)), len(set(outcome) & set(ids)))
+                                     for s, ids in sorted(by_stage.items())}}
     return {"failures": len(stages), "stages": {s: len(ids) for s, ids in sorted(by_stage.items())},
             "succeeded_on_replay": sorted(int(e) for e in replayed), "interventions": table}
 
