@@ -482,6 +482,13 @@ def cmd_analyze_rescue(args: argparse.Namespace) -> int:
                                 replayed)
     table.update(evaluation=args.results, checkpoint=str(folder))
     write_json(out / "rescue.json", table)
+    if args.write_compact:  # as the shipped evaluations are kept: no per-step fields
+        from gsmn.experiments.programme import PER_STEP
+
+        for flag in flags:
+            results = json.loads((out / f"{flag}.json").read_text())
+            results["episodes"] = [{k: v for k, v in e.items() if k not in PER_STEP} for e in results["episodes"]]
+            write_json(Path(args.write_compact) / f"{flag}.json", results)
     print(rescue.rescue_markdown(table))
     return 0
 
@@ -713,6 +720,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--out", required=True, help="folder for each intervention's flights (a stopped run resumes) "
                    "and rescue.json")
     a.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    a.add_argument("--write-compact", default=None, metavar="DIR", help="also write each intervention's flights "
+                   "there without their per-step fields (as checkpoints/gsmn/rescue/ ships them for the dashboard)")
     add_config_arguments(a)
     a.set_defaults(func=cmd_analyze_rescue)
     a = analyze.add_parser("dagger", help="DAggerFM runs side by side, an iteration a row")

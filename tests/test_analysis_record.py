@@ -31,6 +31,34 @@ def ship(root: Path) -> Path:
     return root
 
 
+def test_the_shipped_gsmns_rescue_flights_come_with_its_evaluation(tmp_path):
+    """checkpoints/gsmn/rescue/truth-*.json (`gsmn analyze rescue --write-compact`) are imported with the shipped
+    GSMN's test evaluation, as evaluations of its failures with their intervention: the Failures tab's rescue table
+    reads them; a rescue file that went missing the first time is imported when the evaluation is asked for again."""
+    from app.jobs.results import rescue_of
+
+    root = tmp_path / "checkpoints"
+    (root / "gsmn" / "rescue").mkdir(parents=True)
+    (root / "gsmn" / "table1.json").write_text(json.dumps(compact_evaluation(ENVS, lambda e: e > 87)))
+    goal = compact_evaluation((85, 86, 87), lambda e: e != 87) | {"intervention": {"map": "goal", "with": "truth"}}
+    (root / "gsmn" / "rescue" / "truth-goal.json").write_text(json.dumps(goal))
+    db = Database(tmp_path / "gsmn.sqlite")
+    analyses = Analyses(db, preset("tiny"), root)
+    e = analyses.import_shipped("gsmn/test")
+    table = rescue_of(db, e)
+    assert table["failures"] == 3 and table["stages"] == {"control": 3}
+    assert table["interventions"]["truth-goal"]["all"] | {"low": 0, "high": 0} == {
+        "rescued": 2, "of": 3, "rate": 2 / 3, "low": 0, "high": 0}
+    (rescue,) = [x for x in db.evaluations() if x.intervention]
+    assert rescue.baseline_id == e.id and "perfect goal (shipped)" in rescue.label
+    semantic = compact_evaluation((85, 86, 87), lambda e: False) | {"intervention": {"map": "semantic"}}
+    (root / "gsmn" / "rescue" / "truth-semantic.json").write_text(json.dumps(semantic))
+    assert analyses.import_shipped("gsmn/test").id == e.id
+    assert set(rescue_of(db, e)["interventions"]) == {"truth-semantic", "truth-goal"}
+    assert len(db.evaluations()) == 3, "each imported once"
+    db.close()
+
+
 def recorded(db: Database, evaluation: dict, facts: bool) -> int:
     """`evaluation`'s episodes written as the dashboard records an evaluation's (with or without their facts)."""
     eid = db.add_evaluation(system="gsmn", checkpoint="/c", env_ids=[e["env_id"] for e in evaluation["episodes"]],

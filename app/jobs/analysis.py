@@ -26,6 +26,7 @@ from pathlib import Path
 from app.jobs.db import FINISHED, Database, EpisodeRow, Evaluation, RecordError
 from app.live.commands import NotFound, RunnerError
 from gsmn.analysis import slices
+from gsmn.analysis.intervention import FLAG_LABELS
 from gsmn.config import RunConfig
 
 log = logging.getLogger("gsmn.dashboard")
@@ -186,14 +187,17 @@ class Analyses:
             raise NotFound(f"no shipped evaluation {key!r}; choose from {', '.join(found) or 'none'}")
         s = found[key]
         with self._importing:
-            for e in self.db.evaluations():
-                if e.source == SHIPPED_SOURCE and e.folder == str(s.path):
-                    return e
-            return self._import(s)
+            imported = {e.folder: e for e in self.db.evaluations() if e.source == SHIPPED_SOURCE and e.folder}
+            e = imported.get(str(s.path)) or self._import(s.path, s.system, s.checkpoint, s.label)
+            for path in sorted((s.path.parent / "rescue").glob("truth-*.json")) if s.split == "test" else ():
+                if str(path) not in imported:  # its failures flown with a true map (`gsmn analyze rescue`)
+                    self._import(path, s.system, s.checkpoint, None, e)
+            return e
 
-    def _import(self, s: Shipped) -> Evaluation:
+    def _import(self, path: Path, system: str, checkpoint: Path, label: str | None,
+                rescued: Evaluation | None = None) -> Evaluation:
         try:
-            results = json.loads(s.path.read_text())
+            results = json.loads(path.read_text())
             rows = slices.with_facts(results)  # the facts the file keeps, else computed here
             episodes = [EpisodeRow(
                 evaluation_id=0, position=position, env_id=row["env_id"], instruction=ep["instruction"],
@@ -202,14 +206,19 @@ class Analyses:
                 steps=row["steps"], stopped=row["stopped"], final_x=float(ep["final_x"]), final_y=float(ep["final_y"]),
                 stage=row["stage"], attribution=None, recording=None)
                 for position, (ep, row) in enumerate(zip(results["episodes"], rows, strict=True))]
+            flag = f"truth-{results['intervention']['map']}" if rescued is not None else None
         except (OSError, ValueError, KeyError, TypeError, IndexError) as err:
-            raise RunnerError(f"{s.path} is not a readable evaluation: {type(err).__name__}: {err}") from err
+            raise RunnerError(f"{path} is not a readable evaluation: {type(err).__name__}: {err}") from err
+        if rescued is not None:
+            label = f"the {len(rows)} failures of #{rescued.id}, {FLAG_LABELS.get(flag, flag)} (shipped)"
         now = time.time()
         eid = self.db.add_whole_evaluation(  # all or nothing: a server killed meanwhile leaves no half evaluation
-            {"status": FINISHED, "created": now, "started": now, "finished": now, "system": s.system,
-             "checkpoint": str(s.checkpoint), "env_ids": [row["env_id"] for row in rows], "label": s.label,
-             "source": SHIPPED_SOURCE, "folder": str(s.path), "total": len(rows), "done": len(rows),
-             "summary": results.get("summary")}, episodes, {row["env_id"]: row["facts"] for row in rows})
+            {"status": FINISHED, "created": now, "started": now, "finished": now, "system": system,
+             "checkpoint": str(checkpoint), "env_ids": [row["env_id"] for row in rows], "label": label,
+             "source": SHIPPED_SOURCE, "folder": str(path), "total": len(rows), "done": len(rows),
+             "summary": results.get("summary"), "intervention": flag,
+             "baseline_id": rescued.id if rescued is not None else None},
+            episodes, {row["env_id"]: row["facts"] for row in rows})
         return self.db.evaluation(eid)
 
 

@@ -433,10 +433,13 @@ def with_facts(results: Mapping[str, Any], record=None, checkpoint=None, log=Non
     rows = []
     for episode in results["episodes"]:
         row = normalise(episode)
-        if not valid_facts(row["facts"]) or (attribution_of is not None and row["facts"].get("grounded") is None):
-            world = world_for_env(row["env_id"], config.world)
+        unstaged = attribution_of is not None and row["stage"] is None and not row["success"]
+        if not valid_facts(row["facts"]) or (attribution_of is not None and row["facts"].get("grounded") is None) \
+                or unstaged:
             attribution = attribution_of(episode) if attribution_of is not None else None
-            row["facts"] = episode_facts(episode, world, attribution, config.task.success_radius)
+            if not valid_facts(row["facts"]) or row["facts"].get("grounded") is None:
+                world = world_for_env(row["env_id"], config.world)
+                row["facts"] = episode_facts(episode, world, attribution, config.task.success_radius)
             if attribution is not None and row["stage"] is None and not row["success"]:
                 row["stage"] = attribution["stage"]
         rows.append(row)
