@@ -15,6 +15,7 @@ Chromium and writes its pictures:
 | jobs | scripts/jobs_screenshots.py | docs/dashboard_failures.png, dashboard_finetune.png, dashboard_before_after.png |
 | kept | scripts/kept_screenshots.py | docs/dashboard_episodes.png, docs/dashboard_presenter.png |
 | analysis | scripts/analysis_screenshots.py | docs/dashboard_analysis.png, docs/dashboard_analysis_confusion.png |
+| interventions | scripts/intervention_screenshots.py | docs/dashboard_world_edit.png, docs/dashboard_painted_goal.png |
 
 Not taken here: docs/dashboard_failure_regions.png (`scripts/jobs_screenshots.py --regions EVAL.json --record DIR`,
 from a recorded evaluation of 500 test environments) and the figures of results (accuracy curves, maps,
@@ -48,6 +49,8 @@ def groups(checkpoint: str, preset: str) -> dict[str, list[str]]:
                  "--out", str(ROOT / "docs")],
         "analysis": [str(scripts / "analysis_screenshots.py"), "--preset", preset, "--checkpoint", checkpoint,
                      "--out", str(ROOT / "docs")],
+        "interventions": [str(scripts / "intervention_screenshots.py"), "--preset", preset, "--checkpoint", checkpoint,
+                          "--out", str(ROOT / "docs")],
     }
 
 

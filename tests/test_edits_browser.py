@@ -40,3 +40,42 @@ def test_typed_world_edits_fly_an_edited_world_and_bad_ones_are_refused(tmp_path
         page.get_by_role("button", name="Run", exact=True).click()
         page.get_by_text("would be off the field").first.wait_for()
         assert len(d.runner.episodes.all()) == 1, "nothing else flew"
+
+
+def test_a_landmark_picked_in_the_3d_view_is_removed_or_moved_and_the_edited_world_flies(tmp_path_factory):
+    """"Pick to edit": the box clicked in the 3D view and removed, the pumpkin clicked and then the ground where it
+    goes: the World edits box holds both edits in words, and Run flies that world with the pumpkin where the ground
+    was clicked."""
+    from test_page_newcomer import screen_point
+
+    with browser_support.dashboard(tmp_path_factory, 20, env_id=70) as d, \
+            browser_support.page_on(d, 1500, 1000) as page:
+        world = task_for_env(70, preset("tiny")).world
+        browser_support.choose(page, "Policy", EXPERT_CHOICE)
+        page.get_by_text("Pick to edit").first.click()
+        page.get_by_text("Click a landmark in the 3D view.").first.wait_for()
+        left, top, width, height = page.evaluate("""() => { const c = [...document.querySelectorAll('canvas')]
+            .sort((a, b) => b.width - a.width)[0].getBoundingClientRect(); return [c.left, c.top, c.width, c.height]; }""")
+
+        def click(point) -> None:
+            x, y = screen_point(point, width, height)
+            page.mouse.click(left + x, top + y)
+
+        box, pumpkin = (next(lm for lm in world.landmarks if lm.noun_phrase == name) for name in ("box", "pumpkin"))
+        click((box.x, box.y, 0.8))
+        page.get_by_text("Picked box").first.wait_for()
+        page.get_by_role("button", name="Remove", exact=True).click()
+        browser_support.until(lambda: field(page, "World edits").input_value() == "remove box", what="the remove")
+        click((pumpkin.x, pumpkin.y, 0.5))
+        page.get_by_text("Picked pumpkin").first.wait_for()
+        click((12.0, 12.0, 0.0))
+        browser_support.until(lambda: field(page, "World edits").input_value().startswith("remove box; move pumpkin"),
+                              what="the move")
+        page.get_by_role("button", name="Run", exact=True).click()
+        page.get_by_text("world edited").first.wait_for(timeout=120_000)
+        (episode,) = d.runner.episodes.all()
+        remove, move = episode.world_edits
+        assert (remove.op, remove.landmark, move.op, move.landmark) == ("remove", 4, "move", 2)
+        assert abs(move.x - 12.0) < 0.3 and abs(move.y - 12.0) < 0.3, move
+        moved = next(lm for lm in episode.task.world.landmarks if lm.noun_phrase == "pumpkin")
+        assert (round(moved.x, 1), round(moved.y, 1)) == (move.x, move.y)

@@ -39,6 +39,8 @@ from app.render.truth import (
     went_wrong_text,
 )
 from gsmn.analysis.intervention import Intervention, InterventionError, paint_from_text, parse_intervention
+from gsmn.task.edits import EditError, edits_from_text
+from gsmn.world.spec import world_for_env
 
 PARTNER_RGB = (200, 40, 200)
 AS_ORIGINAL = "As the original"
@@ -126,7 +128,8 @@ class CompareView:
             self.fork_paint = gui.add_text("Paint", "", hint="for a painted map: 'peak 12 20; erase 5 5 2' (x y "
                                                              "[radius], metres)")
             self.fork_button = gui.add_button("Fork here", icon=viser.Icon.GIT_FORK,
-                                              hint="fly on from the step shown, from the simulator's exact state there")
+                                              hint="fly on from the step shown, from the simulator's exact state "
+                                                   "there (with the World edits above made at that step)")
             self.note = gui.add_markdown("")
         self.truth_box = gui.add_checkbox("Truth beside the maps", False,
                                           hint="the true landmarks, the named landmark and the success region under "
@@ -188,12 +191,15 @@ class CompareView:
         step = max(0, min(int(v.view.cursor), len(episode.steps) - 1))
         try:
             intervention = fork_intervention(self.fork_map.value, self.fork_paint.value)
-        except InterventionError as e:
-            self.note.content = f"**Not forked:** {e}"
+            # the World edits box (Episode panel) applies to a fork too: made to the world at its step
+            edits = edits_from_text(v.world_edits.value, world_for_env(episode.env_id, v.runner.config.world))
+            edits = () if tuple(edits) == tuple(episode.world_edits) else edits  # the world it flew: as it was
+        except (InterventionError, EditError) as e:
+            self.note.content = f"**Not forked:** {html.escape(str(e))}"
             return
         self.note.content = f"Forking episode {episode.id} at step {step}..."
         v._post(ForkEpisode(episode.id, step, self.fork_instruction.value.strip() or None, checkpoint, policy,
-                            preempt=True, intervention=intervention), StartAnswered)
+                            preempt=True, world_edits=edits, intervention=intervention), StartAnswered)
 
     # -- which episodes go together ---------------------------------------------------------------------------
     def partner_of(self, episode: Episode | None) -> Episode | None:

@@ -38,6 +38,7 @@ from app.page.events import (
     WatchSet,
     WhatIf,
 )
+from app.page.world_edit_view import WorldEditPicker
 from app.render.colors import paths_legend_html
 from app.render.glossary import glossary_markdown
 from app.render.layers import LAYERS, RANGE_MODES, VALUE_MODES, frame_of, map_title
@@ -142,6 +143,7 @@ class ViewerControls:
             self.name_chips = gui.add_button_group("Landmarks", ("(none)",))
             self.world_edits = gui.add_text("World edits", "", hint="fly an edited world: 'move pumpkin to 12 20.5; "
                                             "remove box; add tank at 4 9' (x, y in m, 0-30; docs/compare.md)")
+            self.picker = WorldEditPicker(self, gui)  # or picked in the 3D view (app.page.world_edit_view)
             self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY,
                                               hint="fly this instruction in this world from the start")
             self.status = gui.add_markdown("")
@@ -444,6 +446,8 @@ class ViewerControls:
             self._events.put(FollowSet(bool(self.follow.value)))
 
     def _on_ground_click(self, x: float, y: float) -> None:
+        if self.picker.ground_clicked(x, y):  # a picked landmark moved there
+            return
         self.announce_cell = True  # the readout lies under the maps: a click also gets a notification
         self._events.put(GroundClicked(x, y))
 
@@ -454,9 +458,12 @@ class ViewerControls:
         if cell is not None:
             self._on_ground_click(*cell_centre(*cell, self.runner.config.world.field_size, n))
 
-    def _on_landmark_click(self, name: str) -> None:
-        """A landmark clicked in the 3D view goes into the instruction (the rest of it kept)."""
-        self._fill_instruction(name=name)
+    def _on_landmark_click(self, name: str, index: int | None = None) -> None:
+        """A landmark clicked in the 3D view goes into the instruction (the rest of it kept), or is picked to edit."""
+        if self.picker.picking and index is not None:
+            self.picker.landmark_clicked(index)
+        else:
+            self._fill_instruction(name=name)
 
     def _on_whatif_typed(self, event: viser.GuiEvent) -> None:
         """The what-if box is checked as it is typed, like the instruction box."""

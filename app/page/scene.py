@@ -270,7 +270,7 @@ class SceneView:
 
     def draw_world(self, world: WorldSpec, on_ground_click=None, on_landmark_click=None) -> None:
         """The world; `on_ground_click(x, y)` is called with the ground point of a click on the field,
-        `on_landmark_click(name)` with the name of a landmark clicked."""
+        `on_landmark_click(name, index)` with the name and index of a landmark clicked."""
         self.generation += 1
         landmarks = draw_world(self.scene, world, self.catalogue, self.generation)
         self.world = world
@@ -279,7 +279,7 @@ class SceneView:
             for i, lm in enumerate(world.landmarks):
                 for name, handle in list(handles.items()):
                     if name.startswith(f"{landmarks}/landmark_{i}/part_"):
-                        handle.on_click(lambda _, phrase=lm.noun_phrase: on_landmark_click(phrase))
+                        handle.on_click(lambda _, phrase=lm.noun_phrase, i=i: on_landmark_click(phrase, i))
         if on_ground_click is not None:
             field = self.scene._handle_from_node_name.get("/world/field")
 
