@@ -55,7 +55,8 @@ def test_a_landmark_picked_in_the_3d_view_is_removed_or_moved_and_the_edited_wor
         page.get_by_text("Pick to edit").first.click()
         page.get_by_text("Click a landmark in the 3D view.").first.wait_for()
         left, top, width, height = page.evaluate("""() => { const c = [...document.querySelectorAll('canvas')]
-            .sort((a, b) => b.width - a.width)[0].getBoundingClientRect(); return [c.left, c.top, c.width, c.height]; }""")
+            .sort((a, b) => b.width - a.width)[0].getBoundingClientRect();
+            return [c.left, c.top, c.width, c.height]; }""")
 
         def click(point) -> None:
             x, y = screen_point(point, width, height)
