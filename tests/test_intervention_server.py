@@ -54,7 +54,7 @@ def test_a_fork_flies_on_with_the_true_goal_map_held(client):
     ({"step": 3, "intervention": {"map": "goal", "hold": False}}, "can only be held"),
     ({"step": 3, "intervention": {"map": "goal", "with": "painted", "paint": [{"op": "dab", "x": 1, "y": 1}]}},
      "each paint is"),
-    ({"step": 3, "policy": "expert", "intervention": {"map": "goal"}}, "fork with policy 'model'"),
+    ({"step": 3, "policy": "expert", "intervention": {"map": "goal"}}, "with policy 'model'"),
 ])
 def test_an_intervention_that_cannot_be_made_is_refused_saying_why(client, payload, words):
     original = finished(client, client.post("/api/episodes", json={"env_id": 71}).json()["id"])
@@ -90,6 +90,14 @@ def test_an_evaluations_failures_flown_again_with_the_true_goal_map(client):
     row = table["interventions"]["truth-goal"]
     assert row["all"]["of"] == len(failures) and row["all"]["rescued"] == len(saved)
     assert sum(r["of"] for r in row["per_stage"].values()) == len(failures)
+    # a replay of a rescued episode flies with the same true map, and ends where the evaluation's flight did
+    flown = client.get(f"/api/evaluations/{rescue['id']}/episodes").json()[0]
+    replayed = client.post(f"/api/evaluations/{rescue['id']}/replay", json={"env_id": flown["env_id"]})
+    assert replayed.status_code == 201, replayed.text
+    live = finished(client, replayed.json()["episode_id"])
+    assert live["intervention"] == {"map": "goal", "with": "truth", "hold": True}, live
+    assert (live["result"]["final_x"], live["result"]["final_y"]) == pytest.approx(
+        (flown["final_x"], flown["final_y"]), abs=0.01)
     again = client.post(f"/api/evaluations/{rescue['id']}/rescue", json={"intervention": "truth-goal"})
     assert again.status_code == 422 and "flew with an intervention already" in again.json()["detail"]
     assert client.post(f"/api/evaluations/{first['id']}/rescue", json={"intervention": "truth-camera"}).status_code \

@@ -19,7 +19,7 @@ from app.api.schema import EnvId, Id, Strict, Text, path_id, responses
 from app.jobs.db import EpisodeRow, Evaluation, Run
 from app.jobs.evaluation_export import FORMATS, export_evaluation, export_name, finite
 from app.jobs.manager import CORES, MAX_IMPORT_BYTES, JobManager
-from app.jobs.results import replay_policy, rescue_of
+from app.jobs.results import replay_intervention, replay_policy, rescue_of
 from app.jobs.settings import MAX_ROLLOUTS, RUN_PRESETS, run_settings
 from app.live.commands import NotFound, RunnerError, StartEpisode
 from gsmn.attribution import STAGES
@@ -293,7 +293,8 @@ def replay(evaluation_id: EvaluationId, request: ReplayRequest, jobs: Jobs, runn
     if jobs.db.episode(evaluation_id, request.env_id) is None:
         raise NotFound(f"evaluation {evaluation_id} has no episode in environment {request.env_id}")
     policy, checkpoint = replay_policy(e)
-    episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint), COMMAND_TIMEOUT)
+    episode = runner.call(StartEpisode(request.env_id, None, policy, checkpoint, intervention=replay_intervention(e)),
+                          COMMAND_TIMEOUT)
     return Replayed(episode_id=episode.id, env_id=request.env_id, policy=policy, checkpoint=checkpoint)
 
 

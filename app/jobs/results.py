@@ -176,6 +176,16 @@ def replay_policy(e: Evaluation) -> tuple[str, str | None]:
     return ("mirror" if e.mirror_ensemble else "model"), e.checkpoint
 
 
+def replay_intervention(e: Evaluation):
+    """The map intervention a replay of an evaluation's episode flies with: the evaluation's (a rescue's true map),
+    or None."""
+    if not e.intervention:
+        return None
+    from gsmn.analysis.intervention import intervention_from_flag
+
+    return intervention_from_flag(e.intervention)
+
+
 def same_checkpoint(a: str | None, b: str | None) -> bool:
     """Whether two recorded checkpoint paths name one folder."""
     if a is None or b is None:

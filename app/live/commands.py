@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -68,6 +69,7 @@ class StartEpisode(Command):
     preempt: bool = False  # end the live episode and fly this one now (the page); else queue it (the API)
     paused: bool = False  # stop after the first step (single-stepping from the start)
     world_edits: tuple = ()  # gsmn.task.edits.WorldEdit: the world flown is the environment's with these edits
+    intervention: Any = None  # gsmn.analysis.intervention.Intervention: the model flies with this map from the start
 
 
 @dataclass

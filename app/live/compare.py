@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from app.live.commands import POLICIES, Command, Conflict, NotFound, RunnerError
-from app.live.flight import Flight, Unwind, task_for_text
+from app.live.flight import Flight, Unwind, intervention_maker, task_for_text
 from app.live.recording import CANCELLED, FAILED, FINISHED, LIVE, PAUSED, RUNNING, Episode, EpisodeResult
 from gsmn.task.demo import DemoPathError, demonstration_path, resample
 from gsmn.task.edits import EditError, edit_world, edited_task
@@ -83,7 +83,6 @@ class ForkPoint:
     same_expert: bool  # the fork's expert follows the original expert's path: its progress applies
     expert_task: Task | None  # the path the fork's expert follows (from the fork point, for a new instruction)
     world: Any = None  # the original's world (gsmn.world.spec.WorldSpec), where the model's memory is rebuilt
-    intervene: Any = None  # the maker of the map substitute the model flies with from step t (an intervention)
 
 
 @dataclass
@@ -179,7 +178,7 @@ class Comparisons:
         episode.fork = self._fork_point(original, episode, c.step)
         if c.intervention is not None:
             episode.intervention = c.intervention
-            episode.fork = replace(episode.fork, intervene=self._intervention_maker(c, policy, checkpoint))
+            episode.intervene = intervention_maker(r, c.intervention, policy, episode.checkpoint)
         episode.steps = list(original.steps[:c.step])
         r.episodes.add(episode)
         r._enqueue(c, episode, episode)
@@ -203,23 +202,6 @@ class Comparisons:
             return edited_task(original.task, c.world_edits, r.config, drone)
         except EditError as e:
             raise RunnerError(str(e)) from e
-
-    def _intervention_maker(self, c: ForkEpisode, policy: str, checkpoint: str | None):
-        """What makes the fork's map substitute (`gsmn.analysis.intervention`), or a RunnerError saying why not."""
-        from gsmn.analysis.intervention import InterventionError, InterventionMaker, check_model, codes_for
-
-        r = self.runner
-        if policy != "model" or checkpoint is None or checkpoint not in r.models:
-            raise RunnerError("a map intervention changes the maps the model flies with: fork with policy 'model' "
-                              "and a GSMN checkpoint")
-        model = r.models[checkpoint]
-        try:
-            check_model(model.policy.model)
-            codes = codes_for(model.path)
-        except InterventionError as e:
-            raise RunnerError(str(e)) from e
-        return InterventionMaker(c.intervention, codes, model.policy.model.config.model.map_size,
-                                 r.config.task.success_radius)
 
     def _forkable(self, episode_id: int) -> tuple[Episode, int]:
         """The episode to fork, and how many of its steps have a simulator state to start from."""

@@ -148,3 +148,22 @@ def step_maps(policy) -> StepMaps | None:
                     v=float(out.v[0, 0]) * drone.max_forward_velocity,
                     omega=float(out.omega[0, 0]) * drone.max_yaw_rate,
                     stop_probability=float(torch.sigmoid(out.stop_logit[0, 0])))
+
+
+def intervention_maker(runner, intervention, policy: str, checkpoint: str | None):
+    """What makes an episode's map substitute (`gsmn.analysis.intervention`) for `runner`'s loaded model
+    `checkpoint`, or a RunnerError saying why there is none: the model must fly (not the expert, not an ensemble)
+    and be a GSMN with both filters and map codes beside its weights."""
+    from gsmn.analysis.intervention import InterventionError, InterventionMaker, check_model, codes_for
+
+    if policy != "model" or checkpoint is None or checkpoint not in runner.models:
+        raise RunnerError("a map intervention changes the maps the model flies with: fly it with policy 'model' and "
+                          "a GSMN checkpoint")
+    model = runner.models[checkpoint]
+    try:
+        check_model(model.policy.model)
+        codes = codes_for(model.path)
+    except InterventionError as e:
+        raise RunnerError(str(e)) from e
+    return InterventionMaker(intervention, codes, model.policy.model.config.model.map_size,
+                             runner.config.task.success_radius)

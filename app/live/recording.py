@@ -137,7 +137,8 @@ class Episode:
     origin: str | None = None  # the browser tab that started it (app.live.commands.Command.origin); None: the API
     typed: str | None = None  # the instruction as typed (gsmn.task.understand); the task's is the template flown
     world_edits: tuple = ()  # gsmn.task.edits.WorldEdit: the edits its world carries (task.world is the edited one)
-    intervention: Any = None  # gsmn.analysis.intervention.Intervention: the map it flew with from its fork's step
+    intervention: Any = None  # gsmn.analysis.intervention.Intervention: the map it flew with (from its fork's step)
+    intervene: Any = None  # what makes that map for the flight (app.live.flight.intervention_maker); not kept
 
     @property
     def env_id(self) -> int:

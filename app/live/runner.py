@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from app.live import flight as flights
 from app.live.commands import (
     MAX_ENV_ID,
     MAX_QUEUED,
@@ -243,6 +244,9 @@ class Runner:
     def _do_StartEpisode(self, c: StartEpisode) -> Episode:
         episode = self._new_episode(c.env_id, c.instruction, c.policy, c.checkpoint, c.paused,
                                     check_queue=not c.preempt, world_edits=c.world_edits)
+        if c.intervention is not None:  # e.g. a replay of an evaluation flown with a true map
+            episode.intervention = c.intervention
+            episode.intervene = flights.intervention_maker(self, c.intervention, episode.policy, episode.checkpoint)
         self.episodes.add(episode)
         self._enqueue(c, episode, episode)
         return episode
@@ -391,6 +395,8 @@ class Runner:
         episode, fork = flight.episode, flight.episode.fork
         episode.snapshots = FlightSnapshots()
         if fork is None:
+            if episode.intervene is not None:  # from the first step: the substitute is made at the policy's reset
+                flight.carrier.intervene(episode.intervene)
             return None
         from gsmn.task.fork import fork_start
 
@@ -405,8 +411,8 @@ class Runner:
             flight.expert.reset(fork.expert_task)
         start = fork_start(self.env, fork.snapshots, fork.step, fork.prefix, flight.carrier, fork.same_model,
                            flight.expert, fork.same_expert, episode.task.world)
-        if fork.intervene is not None:  # from step t on, the model flies with the substitute map
-            flight.carrier.intervene(fork.intervene, episode.task)
+        if episode.intervene is not None:  # from step t on, the model flies with the substitute map
+            flight.carrier.intervene(episode.intervene, episode.task)
         episode.snapshots = fork.snapshots.prefix(fork.step, fork.same_model)
         return start
 

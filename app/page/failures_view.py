@@ -14,7 +14,7 @@ import viser.uplot
 
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
 from app.jobs.evaluation_export import export_evaluation, export_name
-from app.jobs.results import replay_policy, rescue_of
+from app.jobs.results import replay_intervention, replay_policy, rescue_of
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
@@ -254,7 +254,7 @@ class FailuresTab:
             f" The timeline then shows step {step}, where it went wrong." if step is not None else "")
         self.replay_detail.content = episode_html(row, self.replay_note)
         future = self.runner.post(StartEpisode(row.env_id, None, policy, checkpoint, preempt=True,
-                                                origin=self.viewer.origin))
+                                                origin=self.viewer.origin, intervention=replay_intervention(e)))
 
         def started(f, row=row) -> None:
             try:

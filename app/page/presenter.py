@@ -43,9 +43,10 @@ from app.render.panels import cell_marks_html
 
 log = logging.getLogger("gsmn.dashboard")
 # the result table too: the card says the result, and without the table Run and the timeline fit on a 1280x800 screen;
-# the landmark chips (one to three rows) too, so that they fit whatever the world
+# the landmark chips (one to three rows) too, so that they fit whatever the world; and the World edits box with its
+# picker, a developer's tool
 HIDDEN = ("checkpoint_note", "env_number", "split", "env_buttons", "policy", "mirror", "follow", "watch_others",
-          "speed", "shared_note", "status", "result", "side_chips", "name_chips")
+          "speed", "shared_note", "status", "result", "side_chips", "name_chips", "world_edits")
 # folders whose labels start so (the glossary too: presenter mode speaks plainly)
 HIDDEN_FOLDERS = ("Counterfactual", "Layers on the ground", "Compare and fork", "What the words mean")
 SHARE_FOLDER = "Share this step"  # kept, and moved under Playback so that Run and the timeline stay on the screen
@@ -114,6 +115,7 @@ class Presenter:
                 getattr(v, name).visible = not on
             for handle in (*self._folders(), *self._intro()):
                 handle.visible = not on
+            v.picker.show(not on)
             self._move_share(on)
             v.panel.visible = not on
             v.scene.mark_drone(on)

@@ -37,6 +37,12 @@ class WorldEditPicker:
     def picking(self) -> bool:
         return bool(self.pick.value)
 
+    def show(self, visible: bool) -> None:
+        """Shown or hidden with the World edits box (presenter mode hides both)."""
+        self.pick.visible = visible
+        for control in (self.note, self.add_what, self.actions):
+            control.visible = visible and self.picking
+
     def _toggle(self) -> None:
         self.picked = None
         for control in (self.note, self.add_what, self.actions):

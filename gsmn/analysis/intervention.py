@@ -43,6 +43,7 @@ LABELS = {"semantic": "perfect perception", "relevance": "perfect grounding", "g
 FLAGS = tuple(f"truth-{m}" for m in MAPS)  # `gsmn eval --intervene`
 FLAG_LABELS = {f"truth-{m}": LABELS[m] for m in MAPS}
 CODES_FILE = "map_codes.safetensors"
+MAX_PAINTS = 32
 GOAL_WINDOW = 4  # r: the goal template spans (2r+1)^2 cells, 3.75 m each way at 0.9375 m cells
 
 
@@ -110,6 +111,8 @@ def parse_intervention(d: dict, field_size: float = 30.0) -> Intervention:
         if not isinstance(paints, list) or not paints:
             raise InterventionError("a painted map needs a non-empty paint list, e.g. [{\"op\": \"peak\", "
                                     "\"x\": 12.0, \"y\": 20.5}]")
+        if len(paints) > MAX_PAINTS:
+            raise InterventionError(f"at most {MAX_PAINTS} paints, not {len(paints)}")
     elif paints:
         raise InterventionError("paint goes with with: painted")
     return Intervention(name, source, hold, tuple(_paint(p, field_size) for p in paints))
