@@ -26,7 +26,7 @@ from gsmn.analysis.intervention import (
 )
 from gsmn.analysis.slices import wilson
 from gsmn.analysis.truth import truth_maps
-from gsmn.attribution import Heads, attribute_record, load_trace, trace_path
+from gsmn.attribution import PIPELINE, Heads, attribute_record, load_trace, trace_path
 from gsmn.config import RunConfig
 from gsmn.evaluation import PartialResults, checkpoint_fingerprint, evaluate, results_dict, write_json
 from gsmn.model.checkpoint import load_checkpoint, read_checkpoint_kind
@@ -140,6 +140,8 @@ def rescue_table(stages: dict[int, str | None], flown: dict[str, Iterable[tuple[
     by_stage: dict[str, list[int]] = {}
     for env_id, stage in sorted(stages.items()):
         by_stage.setdefault(stage or "not read", []).append(env_id)
+    order = {stage: k for k, stage in enumerate(PIPELINE)}  # the pipeline's order, as the attribution bars
+    by_stage = dict(sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
 
     def rate(k: int, n: int) -> dict:
         lo, hi = wilson(k, n)
@@ -151,8 +153,8 @@ def rescue_table(stages: dict[int, str | None], flown: dict[str, Iterable[tuple[
         saved = {e for e, success in outcome.items() if success}
         table[flag] = {"all": rate(len(saved & set(stages)), len(set(outcome) & set(stages))),
                        "per_stage": {s: rate(len(saved & set(ids)), len(set(outcome) & set(ids)))
-                                     for s, ids in sorted(by_stage.items())}}
-    return {"failures": len(stages), "stages": {s: len(ids) for s, ids in sorted(by_stage.items())},
+                                     for s, ids in by_stage.items()}}
+    return {"failures": len(stages), "stages": {s: len(ids) for s, ids in by_stage.items()},
             "succeeded_on_replay": sorted(int(e) for e in replayed), "interventions": table}
 
 
