@@ -216,3 +216,13 @@ def test_a_rescue_table_counts_failures_saved_per_stage():
     assert table["interventions"]["truth-goal"]["all"]["rescued"] == 3
     text = rescue_markdown(table)
     assert "| grounding | 2 | 2 (100 %" in text and "succeeded when flown again" in text
+
+
+def test_the_episodes_list_says_what_was_changed():
+    from app.page.episodes_view import relation
+
+    assert relation({"fork_of": 3, "fork_step": 12, "intervention": {"map": "goal", "with": "truth", "hold": True}}) \
+        == ["fork of #3 at step 12", "perfect goal"]
+    edited = {"world_edits": [{"op": "remove", "landmark": 4}], "intervention": {"map": "relevance", "with": "painted"}}
+    assert relation(edited) == ["edited world", "painted relevance map"]
+    assert relation({"world_edits": [], "intervention": None}) == []

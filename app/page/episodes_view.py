@@ -137,13 +137,22 @@ def ending(row: dict) -> str:
 
 
 def relation(row: dict) -> list[str]:
-    """Where it comes from: a fork's original and step, a comparison's side and other episode."""
+    """Where it comes from: a fork's original and step, a comparison's side and other episode; and what was changed:
+    its world, or a map (a map intervention)."""
     out = []
     if row.get("fork_of") is not None:
         out.append(f"fork of #{row['fork_of']} at step {row['fork_step']}")
     if row.get("comparison") is not None:
         other = f" with #{row['compared_with']}" if row.get("compared_with") is not None else ""
         out.append(f"side {row['comparison_side']} of a comparison{other}")
+    if row.get("world_edits"):
+        out.append("edited world")
+    if row.get("intervention"):
+        from gsmn.analysis.intervention import LABELS
+
+        iv = row["intervention"]
+        out.append(LABELS.get(iv.get("map"), "a changed map") if iv.get("with", "truth") == "truth"
+                   else f"painted {iv.get('map')} map")
     return out
 
 
