@@ -226,3 +226,11 @@ def test_the_episodes_list_says_what_was_changed():
     edited = {"world_edits": [{"op": "remove", "landmark": 4}], "intervention": {"map": "relevance", "with": "painted"}}
     assert relation(edited) == ["edited world", "painted relevance map"]
     assert relation({"world_edits": [], "intervention": None}) == []
+
+
+def test_a_kept_episode_reads_its_intervention_back_and_a_damaged_one_as_none():
+    from app.jobs.kept_store import _intervention
+
+    assert _intervention({"map": "goal", "with": "truth", "hold": True}) == Intervention("goal")
+    assert _intervention(None) is None
+    assert _intervention({"map": "elevation"}) is None and _intervention("goal") is None  # damaged: left out
