@@ -8,7 +8,7 @@ deterministic), the renders interleaved so that load on the machine falls on all
 (shadow map size, shadow clip, shadows on); the clip scales the part of the scene the directional light's shadow
 map covers (`visual/map shadowclip`), so a smaller map with a tighter clip keeps the texels per metre. Pixel
 figures: the share of pixels whose largest channel difference from the reference is over 16 levels, and the mean
-absolute difference. Issue 80 (docs/world.md, "Rendering speed").
+absolute difference. Results: docs/experiments.md, "Rendering at the paper's look".
 """
 
 from __future__ import annotations
