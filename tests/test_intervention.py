@@ -234,3 +234,18 @@ def test_a_kept_episode_reads_its_intervention_back_and_a_damaged_one_as_none():
     assert _intervention({"map": "goal", "with": "truth", "hold": True}) == Intervention("goal")
     assert _intervention(None) is None
     assert _intervention({"map": "elevation"}) is None and _intervention("goal") is None  # damaged: left out
+
+
+def test_an_exports_result_line_says_what_was_changed():
+    import types
+
+    from app.live.recording import FINISHED
+    from app.render.export import result_line
+
+    r = types.SimpleNamespace(success=True, stopped=True, steps=37, goal_distance=0.93, final_side="back")
+    episode = types.SimpleNamespace(status=FINISHED, result=r, steps=[], world_edits=(), intervention=None,
+                                    task=types.SimpleNamespace(instruction=types.SimpleNamespace(side="back")))
+    plain = result_line(episode)
+    assert plain == "Success: said STOP after 37 steps, 0.9 m from the goal, back side (asked back)"
+    episode.world_edits, episode.intervention = ("an edit",), Intervention("goal", "painted")
+    assert result_line(episode) == plain + "; in an edited world, with a painted goal map"

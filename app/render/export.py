@@ -66,8 +66,11 @@ def result_line(episode: Episode) -> str:
     if episode.status != FINISHED or r is None:
         return f"Stopped early ({episode.status}) after {len(episode.steps)} steps"
     how = "said STOP" if r.stopped else "ran out of steps"
+    changed = [*(["in an edited world"] if episode.world_edits else []),
+               *([f"with {episode.intervention.short()}"] if episode.intervention is not None else [])]
     return (f"{'Success' if r.success else 'Failure'}: {how} after {r.steps} steps, {r.goal_distance:.1f} m from the "
-            f"goal, {r.final_side} side (asked {episode.task.instruction.side})")
+            f"goal, {r.final_side} side (asked {episode.task.instruction.side})"
+            + (f"; {', '.join(changed)}" if changed else ""))
 
 
 def step_layers(episode: Episode, t: int, heads: MapHeads | None, legends: dict | None = None,

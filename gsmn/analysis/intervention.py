@@ -76,6 +76,10 @@ class Intervention:
         edits = ", ".join(f"{p.op} at ({p.x:.1f}, {p.y:.1f})" for p in self.paint)
         return f"painted {self.map} map ({edits}), held at every step"
 
+    def short(self) -> str:
+        """In a few words: "perfect goal", "a painted goal map"."""
+        return LABELS[self.map] if self.source == "truth" else f"a painted {self.map} map"
+
     def to_dict(self) -> dict:
         d = {"map": self.map, "with": self.source, "hold": self.hold}
         if self.paint:
