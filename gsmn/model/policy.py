@@ -39,14 +39,14 @@ class ModelPolicy:
         self.state = None
         self.last_outputs: Outputs | None = None
         self.generator = torch.Generator()
-        self.intervention = None  # a maker of an episode's map substitute (`intervene`), or None
+        self.substitute_maker = None  # what makes an episode's map substitute (`intervene`), or None
         self.substitute = None  # this episode's, made from its task
 
     def intervene(self, maker, task: Task | None = None) -> None:
         """Fly with a map intervention: `maker(task)` makes the episode's substitute
         (`gsmn.analysis.intervention.InterventionMaker`); None stops intervening. With `task`, the substitute
         starts now, mid-episode (a fork); otherwise at the next `reset`."""
-        self.intervention = maker
+        self.substitute_maker = maker
         self.substitute = maker(task) if maker is not None and task is not None else None
 
     def reset(self, task: Task) -> None:
@@ -57,7 +57,7 @@ class ModelPolicy:
             self.kernels = self.model.instruction_kernels(self.sentence_embedding)
         self.state = None
         self.last_outputs = None
-        self.substitute = self.intervention(task) if self.intervention is not None else None
+        self.substitute = self.substitute_maker(task) if self.substitute_maker is not None else None
 
     def carried(self) -> tuple:
         """What this policy carries from one step to the next, apart from what its instruction makes at `reset`
