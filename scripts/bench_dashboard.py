@@ -31,7 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.browser import CHROMIUM_ARGS, field
+from app.browser import CHROMIUM_ARGS, dismiss_notifications, field
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -86,10 +86,6 @@ COUNT_FRAMES = """() => {
 
 
 
-
-def dismiss_notifications(page) -> None:
-    page.evaluate("""() => document.querySelectorAll('.mantine-Notification-closeButton, '
-                  + '[class*="Notification"] button').forEach(b => b.click())""")
 
 
 def wait(condition, timeout: float = 300.0) -> None:

@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.browser import CHROMIUM_ARGS, field
+from app.browser import CHROMIUM_ARGS, dismiss_notifications, field
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -99,8 +99,7 @@ def main() -> int:
             page.goto(dashboard.urls.page)
             page.get_by_role("button", name="Run", exact=True).wait_for()
             page.wait_for_timeout(3000)
-            page.evaluate("""() => document.querySelectorAll('.mantine-Notification-closeButton, '
-                          + '[class*="Notification"] button').forEach(b => b.click())""")  # "software WebGL"
+            dismiss_notifications(page)  # "software WebGL"
 
             # 1. side by side
             page.get_by_text("Compare and fork").first.click()

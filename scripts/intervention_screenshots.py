@@ -25,7 +25,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from compare_screenshots import choose, open_tab, reset_camera, scrub_to, wait  # noqa: E402
 
-from app.browser import CHROMIUM_ARGS, field  # noqa: E402
+from app.browser import CHROMIUM_ARGS, dismiss_notifications, field  # noqa: E402
 
 
 def run_and_wait(page, runner, button: str):
@@ -91,8 +91,7 @@ def main() -> int:
             page.goto(dashboard.urls.page)
             page.get_by_role("button", name="Run", exact=True).wait_for()
             page.wait_for_timeout(3000)
-            page.evaluate("""() => document.querySelectorAll('.mantine-Notification-closeButton, '
-                          + '[class*="Notification"] button').forEach(b => b.click())""")  # "software WebGL"
+            dismiss_notifications(page)  # "software WebGL"
             choose(page, "Policy", dashboard.viewer.policy.options[0])
 
             # 1. an edited world, flown by the model

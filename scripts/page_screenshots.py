@@ -16,17 +16,12 @@ from pathlib import Path
 
 from PIL import Image
 
-from app.browser import field
+from app.browser import dismiss_notifications, field
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run"]
 
 
 
-
-def dismiss_notifications(page) -> None:
-    """The "software WebGL" notice headless Chromium gets (a browser with a GPU does not)."""
-    page.evaluate("""() => document.querySelectorAll('.mantine-Notification-closeButton, '
-                  + '[class*="Notification"] button').forEach(b => b.click())""")
 
 
 def save(page, path: Path) -> None:
