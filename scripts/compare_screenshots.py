@@ -68,6 +68,18 @@ def reset_camera(dashboard, look_at: tuple[float, float] | None = None) -> None:
         client.camera.up_direction = DEFAULT_CAMERA["up"]
 
 
+def open_page(playwright, dashboard, chromium: str):
+    """A headless Chromium and a 1600x1000 page open on the dashboard, its scene arrived and its WebGL notice closed."""
+    browser = playwright.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page.set_default_timeout(120_000)
+    page.goto(dashboard.urls.page)
+    page.get_by_role("button", name="Run", exact=True).wait_for()
+    page.wait_for_timeout(3000)
+    dismiss_notifications(page)  # "software WebGL"
+    return browser, page
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="tiny", choices=("tiny", "paper"))
@@ -93,13 +105,7 @@ def main() -> int:
     runner = dashboard.runner
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=a.chromium, args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.set_default_timeout(120_000)
-            page.goto(dashboard.urls.page)
-            page.get_by_role("button", name="Run", exact=True).wait_for()
-            page.wait_for_timeout(3000)
-            dismiss_notifications(page)  # "software WebGL"
+            browser, page = open_page(p, dashboard, a.chromium)
 
             # 1. side by side
             page.get_by_text("Compare and fork").first.click()

@@ -23,9 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from compare_screenshots import choose, open_tab, reset_camera, scrub_to, wait  # noqa: E402
+from compare_screenshots import choose, open_page, open_tab, reset_camera, scrub_to, wait  # noqa: E402
 
-from app.browser import CHROMIUM_ARGS, dismiss_notifications, field  # noqa: E402
+from app.browser import field  # noqa: E402
 
 
 def run_and_wait(page, runner, button: str):
@@ -85,13 +85,7 @@ def main() -> int:
     runner = dashboard.runner
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=a.chromium, args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.set_default_timeout(120_000)
-            page.goto(dashboard.urls.page)
-            page.get_by_role("button", name="Run", exact=True).wait_for()
-            page.wait_for_timeout(3000)
-            dismiss_notifications(page)  # "software WebGL"
+            browser, page = open_page(p, dashboard, a.chromium)
             choose(page, "Policy", dashboard.viewer.policy.options[0])
 
             # 1. an edited world, flown by the model
