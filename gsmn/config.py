@@ -102,6 +102,9 @@ class DroneConfig:
         return round(1.0 / (self.control_hz * self.physics_dt))
 
 
+SHADOW_METHODS = ("mujoco", "baked")
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """The forward camera (paper: 256x144 RGB first-person images)."""
@@ -113,12 +116,16 @@ class CameraConfig:
     forward_offset: float = _f(0.1, "camera position ahead of the body centre (m)")
     shadows: bool = _f(True, "render shadows")
     shadow_size: int = _f(1024, "shadow map size (MuJoCo's default 4096 costs ~70 ms a frame on CPU)")
+    shadow_method: str = _f("mujoco", "how shadows are drawn: 'mujoco' (MuJoCo's shadow passes, every frame) or "
+                            "'baked' (the landmarks' shadows on the field drawn once per world; one pass a frame)")
     msaa: bool = _f(False, "4x multisample anti-aliasing (about +15 ms a frame on these CPUs)")
 
     def __post_init__(self) -> None:
         _check(self.width > 0 and self.height > 0, "camera size must be positive")
         _check(0 < self.hfov_deg < 170, "camera.hfov_deg must be in (0, 170)")
         _check(-89 < self.pitch_deg < 89, "camera.pitch_deg must be in (-89, 89)")
+        _check(self.shadow_method in SHADOW_METHODS,
+               f"camera.shadow_method must be one of {', '.join(SHADOW_METHODS)}, got {self.shadow_method!r}")
 
     @property
     def focal(self) -> float:

@@ -5,8 +5,9 @@ render and how far its pixels are from the paper preset's (shadow map 1024, MuJo
 
 Every setting renders the same frames: one simulator per setting, stepped with the same actions (the physics is
 deterministic), the renders interleaved so that load on the machine falls on all of them alike. A setting is
-(shadow map size, shadow clip, shadows on); the clip scales the part of the scene the directional light's shadow
-map covers (`visual/map shadowclip`), so a smaller map with a tighter clip keeps the texels per metre. Pixel
+(shadow map size, shadow clip, shadows on, shadow method: MuJoCo's passes or baked, gsmn/world/shadows.py); the
+clip scales the part of the scene the directional light's shadow map covers (`visual/map shadowclip`), so a smaller
+map with a tighter clip keeps the texels per metre. Pixel
 figures: the share of pixels whose largest channel difference from the reference is over 16 levels, and the mean
 absolute difference. Results: docs/experiments.md, "Rendering at the paper's look".
 """
@@ -25,21 +26,23 @@ from gsmn.world.assets import load_catalogue
 from gsmn.world.sim import Simulator
 from gsmn.world.spec import split_env_ids, world_for_env
 
-SETTINGS = {  # name: (shadow map size, shadow clip or None for MuJoCo's default, shadows)
-    "paper (1024)": (1024, None, True),
-    "512": (512, None, True),
-    "256": (256, None, True),
-    "1024, clip 0.5": (1024, 0.5, True),
-    "512, clip 0.5": (512, 0.5, True),
-    "256, clip 0.25": (256, 0.25, True),
-    "no shadows": (1024, None, False),
+SETTINGS = {  # name: (shadow map size, shadow clip or None for MuJoCo's default, shadows, shadow method)
+    "paper (1024)": (1024, None, True, "mujoco"),
+    "512": (512, None, True, "mujoco"),
+    "256": (256, None, True, "mujoco"),
+    "1024, clip 0.5": (1024, 0.5, True, "mujoco"),
+    "512, clip 0.5": (512, 0.5, True, "mujoco"),
+    "256, clip 0.25": (256, 0.25, True, "mujoco"),
+    "no shadows": (1024, None, False, "mujoco"),
+    "baked shadows": (1024, None, True, "baked"),
 }
 
 
-def simulator(world, config, catalogue, size: int, clip: float | None, shadows: bool) -> Simulator:
+def simulator(world, config, catalogue, size: int, clip: float | None, shadows: bool, method: str) -> Simulator:
     import dataclasses
 
-    config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, shadow_size=size, shadows=shadows))
+    config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, shadow_size=size, shadows=shadows,
+                                                                    shadow_method=method))
     sim = Simulator(world, config, catalogue)
     if clip is not None:
         sim.model.vis.map.shadowclip = clip

@@ -25,6 +25,7 @@ import mujoco  # gsmn/__init__.py has set MUJOCO_GL=egl before this import
 import numpy as np
 
 from gsmn.config import CameraConfig, DroneConfig, RunConfig
+from gsmn.world import shadows
 from gsmn.world.assets import AssetModel, load_catalogue
 from gsmn.world.spec import WorldSpec
 
@@ -51,7 +52,9 @@ _BASE_XML = """
              width="256" height="256"/>
     <texture name="grass" type="2d" builtin="checker" rgb1="0.36 0.58 0.25" rgb2="0.33 0.55 0.23"
              width="64" height="64"/>
-    <material name="field" texture="grass" texrepeat="10 10" specular="0" shininess="0" reflectance="0"/>
+    {field_texture}
+    <material name="field" texture="{field_material_texture}" texrepeat="{field_repeat} {field_repeat}" specular="0"
+              shininess="0" reflectance="0"/>
     <material name="outside" rgba="0.52 0.50 0.38 1" specular="0" reflectance="0"/>
     <material name="water" rgba="0.20 0.42 0.75 1" specular="0.3" shininess="0.6"/>
   </asset>
@@ -119,7 +122,7 @@ def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel,
         half=half, outside=4 * world.field_size, topdown=TOPDOWN_CAMERA, topdown_extent=topdown_extent(world),
         altitude=drone.altitude, mass=drone.mass, ixx=ixx, izz=2 * ixx, arms=_arms_xml(drone.arm_length),
         fpv=FPV_CAMERA, cam_forward=cam.forward_offset, sp=math.sin(pitch), cp=math.cos(pitch),
-        fovy=cam.vfov_deg, max_thrust=3 * drone.mass * GRAVITY)
+        fovy=cam.vfov_deg, max_thrust=3 * drone.mass * GRAVITY, **_field_texture(cam))
     spec = mujoco.MjSpec.from_string(xml)
     for i, lm in enumerate(world.landmarks):
         model = by_name[lm.model]
@@ -138,6 +141,18 @@ def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel,
                                 size=[lake.radius_x, lake.radius_y, 0.015], pos=[lake.x, lake.y, 0.0],
                                 quat=_yaw_quat(lake.yaw), material="water", contype=0, conaffinity=0)
     return spec
+
+
+def _field_texture(cam: CameraConfig) -> dict[str, object]:
+    """The field's material: the grass checker repeated, or with baked shadows one texture over the whole field
+    (filled by gsmn.world.shadows.bake)."""
+    if not (cam.shadows and cam.shadow_method == "baked"):
+        return {"field_texture": "", "field_material_texture": shadows.GRASS_TEXTURE,
+                "field_repeat": shadows.GRASS_REPEAT}
+    side = 64 * shadows.GRASS_REPEAT  # the grass checker's texels (width="64" above) over the field
+    return {"field_texture": f'<texture name="{shadows.FIELD_TEXTURE}" type="2d" builtin="flat" rgb1="1 1 1" '
+                             f'width="{side}" height="{side}"/>',
+            "field_material_texture": shadows.FIELD_TEXTURE, "field_repeat": 1}
 
 
 def _yaw_quat(yaw: float) -> list[float]:
@@ -229,6 +244,10 @@ class Simulator:
         self.K = intrinsics(config.camera)
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
         self.reset()
+        self._baked = config.camera.shadows and config.camera.shadow_method == "baked"
+        if self._baked:  # before any renderer uploads the model's textures and lights
+            shadows.bake(self.model, self.data, world.field_size, config.camera.pitch_deg)
+            shadows.scale_lights(self.model)
 
     # -- state -------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -333,15 +352,18 @@ class Simulator:
                 raise RuntimeError(
                     f"MuJoCo could not create an OpenGL context ({e}). Rendering here is headless through EGL: "
                     "set MUJOCO_GL=egl in the environment, or import gsmn before mujoco (gsmn sets it).") from e
-            r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.config.camera.shadows
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.config.camera.shadows and not self._baked
         return r
+
+    def _finish(self, image: np.ndarray) -> np.ndarray:
+        return shadows.restore(image) if self._baked else image
 
     def render(self) -> np.ndarray:
         """The forward camera image (H, W, 3) uint8, top row first."""
         cam = self.config.camera
         r = self._get_renderer(cam.height, cam.width)
         r.update_scene(self.data, camera=self._fpv)
-        return r.render()
+        return self._finish(r.render())
 
     def render_segmentation(self) -> np.ndarray:
         """Per-pixel MuJoCo geom id (H, W) int of the forward camera (-1 for the sky)."""
@@ -359,7 +381,7 @@ class Simulator:
         """An orthographic view straight down on the field (size, size, 3) uint8; north (+y) up."""
         r = self._get_renderer(size, size)
         r.update_scene(self.data, camera=TOPDOWN_CAMERA)
-        return r.render()
+        return self._finish(r.render())
 
     def landmark_of_geom(self, geom_id: int) -> int | None:
         """Index into world.landmarks of the landmark a geom belongs to, or None."""

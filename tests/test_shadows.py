@@ -1,0 +1,103 @@
+"""Baked shadows (gsmn/world/shadows.py): the paper's look in one render pass, against MuJoCo's own shadow passes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gsmn.config import CameraConfig, ConfigError, RunConfig
+from gsmn.world import shadows
+from gsmn.world.assets import load_catalogue
+from gsmn.world.sim import Simulator
+from gsmn.world.spec import split_env_ids, world_for_env
+
+pytestmark = pytest.mark.unit
+
+PAPER = RunConfig()
+
+
+def _sim(env_id: int, method: str) -> Simulator:
+    config = dataclasses.replace(PAPER, camera=dataclasses.replace(PAPER.camera, shadow_method=method))
+    return Simulator(world_for_env(env_id, config.world), config, load_catalogue())
+
+
+def _flown_pairs(env_id: int, steps: int, *methods: str):
+    """The forward camera's frames of one flight, rendered by each method (the physics is deterministic)."""
+    sims = [_sim(env_id, m) for m in methods]
+    try:
+        for k in range(steps):
+            for sim in sims:
+                sim.step(1.6, 0.6 if (k // 6) % 2 else -0.6)
+            yield [sim.render().astype(np.int16) for sim in sims]
+    finally:
+        for sim in sims:
+            sim.close()
+
+
+def test_baked_shadows_look_like_mujocos_shadow_passes():
+    """Over flights in two test worlds, frames with baked shadows stay within a few levels of MuJoCo's shadow
+    passes, where one pass without the light scaling caps the field's brightness (the clamp before the texture)."""
+    near, capped = [], []
+    for env_id in split_env_ids("test", 2):
+        for mujoco_frame, baked in _flown_pairs(env_id, 12, "mujoco", "baked"):
+            d = np.abs(baked - mujoco_frame)
+            near.append((float((d.max(-1) > 16).mean()), float(d.mean())))
+        no_scale = dataclasses.replace(PAPER, camera=dataclasses.replace(PAPER.camera, shadows=False))
+        sim, reference = Simulator(world_for_env(env_id, no_scale.world), no_scale, load_catalogue()), _sim(env_id,
+                                                                                                            "mujoco")
+        try:
+            capped.append(float((np.abs(sim.render().astype(int) - reference.render().astype(int)).max(-1)
+                                 > 16).mean()))
+        finally:
+            sim.close()
+            reference.close()
+    over, mean_abs = np.mean(near, axis=0)
+    assert over < 0.04 and mean_abs < 2.5, (over, mean_abs)
+    assert min(capped) > 0.1, capped
+
+
+def test_baked_shadows_fall_where_mujocos_fall_seen_from_above():
+    """In the top-down view the texels that MuJoCo's shadow map darkens (against the same view with nothing baked)
+    are the ones the baked shadows darken."""
+    env_id = split_env_ids("test", 2)[1]
+
+    def topdown(method: str) -> np.ndarray:
+        sim = _sim(env_id, method)
+        try:
+            return sim.render_topdown(512).astype(float)
+        finally:
+            sim.close()
+
+    real_cover = shadows.shadow_cover
+    shadows.shadow_cover = lambda *a, **k: np.zeros_like(real_cover(*a, **k))
+    try:
+        lit = topdown("baked")
+    finally:
+        shadows.shadow_cover = real_cover
+    colours, counts = np.unique(lit.reshape(-1, 3), axis=0, return_counts=True)
+    checker = colours[np.argsort(counts)[-2:]]  # the lit field's two colours, the commonest in the view
+    field = (np.abs(lit[:, :, None, :] - checker).max(-1) <= 8).any(-1)
+    theirs, ours = (field & ((lit - topdown(m))[..., 1] > 25) for m in ("mujoco", "baked"))
+    iou = (theirs & ours).sum() / (theirs | ours).sum()
+    assert theirs.sum() > 2000 and iou > 0.85, (theirs.sum(), iou)
+
+
+def test_the_field_texture_is_the_checker_where_nothing_shadows_it():
+    sim = _sim(split_env_ids("test", 1)[0], "baked")
+    try:
+        grass, gh, gw = shadows._texture(sim.model, shadows.GRASS_TEXTURE)
+        field, fh, fw = shadows._texture(sim.model, shadows.FIELD_TEXTURE)
+        assert (fh, fw) == (gh * shadows.GRASS_REPEAT, gw * shadows.GRASS_REPEAT)
+        values = {tuple(v) for v in grass.reshape(-1, grass.shape[-1])}
+        lit = np.array([tuple(v) in values for v in field.reshape(-1, field.shape[-1])])
+        assert 0.8 < lit.mean() < 1.0  # most of the field is lit checker, the rest darkened by shadows
+    finally:
+        sim.close()
+
+
+def test_the_shadow_method_is_checked():
+    with pytest.raises(ConfigError, match="shadow_method"):
+        CameraConfig(shadow_method="raytraced")
+    assert CameraConfig().shadow_method == "mujoco"
