@@ -16,11 +16,13 @@ With --screenshots DIR it also writes dashboard_live.png (mid-episode) and dashb
 
     python scripts/bench_dashboard.py                      # tiny preset, untrained checkpoint unless one exists
     python scripts/bench_dashboard.py --preset paper --runs 5 --json out/bench_dashboard.json
+    python scripts/bench_dashboard.py --preset paper --shadow-method baked --runs 5   # baked shadows (issue 80)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import http.client
 import json
 import os
@@ -106,6 +108,8 @@ def summary(values: list[float]) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="tiny", choices=("tiny", "paper"))
+    ap.add_argument("--shadow-method", default=None, choices=("mujoco", "baked"),
+                    help="camera.shadow_method (default: the preset's)")
     ap.add_argument("--checkpoint", default=None, help="GSMN checkpoint (default: checkpoints/gsmn if it exists, "
                     "else an untrained one biased to fly)")
     ap.add_argument("--env-id", type=int, default=70)
@@ -131,10 +135,14 @@ def main() -> int:
     if checkpoint is None:
         checkpoint = str(make_untrained_checkpoint(Path(tempfile.mkdtemp()) / "gsmn", a.preset))
         note = " (untrained, biased to fly: no trained checkpoint yet)"
-    print(f"checkpoint: {checkpoint}{note}; preset {a.preset}; {os.cpu_count()} CPU cores; "
+    print(f"checkpoint: {checkpoint}{note}; preset {a.preset}, shadows {a.shadow_method or 'as the preset'}; "
+          f"{os.cpu_count()} CPU cores; "
           f"load average {os.getloadavg()[0]:.1f} at start", flush=True)
 
-    dashboard = Dashboard(preset(a.preset), checkpoint=checkpoint, port=0, api_port=0, env_id=a.env_id,
+    config = preset(a.preset)
+    if a.shadow_method:
+        config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, shadow_method=a.shadow_method))
+    dashboard = Dashboard(config, checkpoint=checkpoint, port=0, api_port=0, env_id=a.env_id,
                           data_dir=tempfile.mkdtemp(prefix="gsmn-bench-"))
     runner, figures = dashboard.runner, {}
     try:

@@ -2,13 +2,15 @@
 
     python scripts/bench_world.py [--envs 5] [--steps 50] [--repeats 3]
 
-Prints one table per preset (paper: shadows, no MSAA; tiny: neither). Each figure is the median over
+Prints one row per look (paper: MuJoCo's shadow passes, no MSAA; paper, baked: the same look with the static
+world's shadows baked once per world, gsmn/world/shadows.py; tiny: no shadows, no MSAA). Each figure is the median over
 all measured calls; the loop rate is the median over repeats of (steps / wall time) for step + render.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import platform
 import statistics
 import time
@@ -20,9 +22,13 @@ from gsmn.world.env import Action, Env
 from gsmn.world.sim import Simulator
 from gsmn.world.spec import split_env_ids, world_for_env
 
+LOOKS = {"paper": ("paper", "mujoco"), "paper, baked": ("paper", "baked"), "tiny": ("tiny", "mujoco")}
 
-def bench(preset_name: str, envs: int, steps: int, repeats: int) -> dict[str, float]:
+
+def bench(look: str, envs: int, steps: int, repeats: int) -> dict[str, float]:
+    preset_name, shadow_method = LOOKS[look]
     config = preset(preset_name)
+    config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, shadow_method=shadow_method))
     catalogue = load_catalogue()
     physics, render, reset, loop_rates = [], [], [], []
     for env_id in split_env_ids("test", envs):
@@ -57,10 +63,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}")
-    print(f"{'preset':8} {'physics step (ms)':>18} {'render (ms)':>12} {'reset (ms)':>11} {'loop (steps/s)':>15}")
-    for name in ("paper", "tiny"):
+    print(f"{'preset':12} {'physics step (ms)':>18} {'render (ms)':>12} {'reset (ms)':>11} {'loop (steps/s)':>15}")
+    for name in LOOKS:
         r = bench(name, args.envs, args.steps, args.repeats)
-        print(f"{name:8} {r['physics_ms']:18.2f} {r['render_ms']:12.2f} {r['reset_ms']:11.1f} "
+        print(f"{name:12} {r['physics_ms']:18.2f} {r['render_ms']:12.2f} {r['reset_ms']:11.1f} "
               f"{r['loop_steps_per_s']:15.1f}")
 
 
