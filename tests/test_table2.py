@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from gsmn import evaluation
-from gsmn.config import LossConfig
+from gsmn.config import LossConfig, preset, with_overrides
 from gsmn.experiments import programme
 from gsmn.experiments.programme import Layout, collect_store, data_needed, run_system
 from gsmn.experiments.recipe import (
@@ -76,6 +76,9 @@ def test_the_six_systems_differ_from_the_control_only_in_their_switch():
     assert sup["train.epochs"] == recipe.epochs and sup["train.learning_rate"] == 1e-3
     assert dagger["train.learning_rate"] == recipe.dagger_learning_rate
     assert {k for k in sup if sup[k] != dagger[k]} == {"train.learning_rate"}
+    # rendered as the first systems trained, with MuJoCo's shadow passes, whatever the library's default
+    assert sup["camera.shadow_method"] == dagger["camera.shadow_method"] == recipe.shadow_method == "mujoco"
+    assert recipe.base_config() == with_overrides(preset("paper"), {"camera.shadow_method": "mujoco"})
 
 
 def test_the_recipe_reads_stage_copies_without_training_evaluation_or_torch():

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gsmn.config import RunConfig, preset
+from gsmn.config import RunConfig
 from gsmn.experiments.recipe import (
     BY_NAME,
     EVALUATIONS,
@@ -276,7 +276,7 @@ def collect_store(layout: Layout, recipe: Recipe, name: str, workers: int = 1, l
     missing = [e for e in ids if episode_key(e) not in store]
     if not missing:
         return
-    config = preset(recipe.preset)
+    config = recipe.base_config()
 
     def on_episode(*_) -> None:
         if progress is not None:
@@ -508,7 +508,8 @@ def evaluate_system(system: System, layout: Layout, recipe: Recipe, threads: int
         if not full.is_file():
             command = [sys.executable, "-m", "gsmn.cli", "eval", "--system", system.kind, "--checkpoint", str(ship),
                        "--env-ids", ",".join(map(str, chunk)), "--json", str(full), "--record", str(record),
-                       "--workers", "1", "--threads", str(threads), "--preset", recipe.preset]
+                       "--workers", "1", "--threads", str(threads), "--preset", recipe.preset,
+                       "--camera.shadow-method", recipe.shadow_method]
             if Path(str(full) + ".partial.jsonl").is_file():
                 command.append("--resume")
             log(f"{system.name}: flying {len(chunk)} {split} environments ({len(episodes)} of {len(ids)} done)")

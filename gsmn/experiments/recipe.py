@@ -43,9 +43,16 @@ class Recipe:
     publish_every_iterations: int = 5
     control_gate: float = 60.0  # the control's dev success (%) below which the drops would be noise: stop there
     preset: str = "paper"
+    # how the camera draws shadows (gsmn/world/shadows.py): every system of the programme trains and is evaluated
+    # under the look its first systems had, MuJoCo's shadow passes, whatever the library's default
+    shadow_method: str = "mujoco"
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+    def base_config(self) -> RunConfig:
+        """The configuration every system of the recipe starts from: its preset, rendered its way."""
+        return with_overrides(preset(self.preset), {"camera.shadow_method": self.shadow_method})
 
 
 RECIPES = {
@@ -97,7 +104,7 @@ def system_configs(system: System, recipe: Recipe, threads: int = 2,
     """The supervised and the DAggerFM configuration of `system` under `recipe`. `threads` and `device` are settings a
     run may change when it resumes (`gsmn.training.run.ADJUSTABLE`): on a GPU the episodes of the next batches are
     read on 4 threads while one trains (`train.prefetch`: the same batches, so the same run)."""
-    base = preset(recipe.preset)
+    base = recipe.base_config()
     common = {"train.batch_size": "1", "train.threads": str(threads), "train.device": device,
               "train.prefetch": "0" if device == "cpu" else "4", "train.epochs": str(recipe.epochs),
               "dagger.iterations": str(recipe.iterations), "dagger.rollouts_per_iteration": str(recipe.rollouts),
