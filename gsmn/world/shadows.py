@@ -29,7 +29,6 @@ LIGHT_SCALE = 2  # lights and sky divided by it, images multiplied by it: no lit
 FIELD_TEXTURE = "field_baked"  # the field's texture in this mode: the grass checker over the whole field, shadowed
 GRASS_TEXTURE = "grass"  # the checker the paper's look repeats over the field
 GRASS_REPEAT = 10  # its repeats over the field (the field material's texrepeat in the paper's look)
-EDGE_PASSES = 0
 SUPERSAMPLE = 3  # triangles drawn at 3x the texture's resolution, then averaged: partly shadowed texels
 
 
@@ -86,16 +85,7 @@ def shadow_cover(triangles: np.ndarray, sun_dir: np.ndarray, field_size: float, 
     for c, r in zip(cols.tolist(), rows.tolist(), strict=True):
         draw.polygon([(c[0], r[0]), (c[1], r[1]), (c[2], r[2])], fill=255)
     small = canvas.resize((size, size), Image.Resampling.BOX)
-    cover = np.asarray(small, dtype=np.float32) / 255.0
-    for _ in range(EDGE_PASSES):  # MuJoCo's shadow map is read with linear filtering: edges a texel soft each side
-        cover = _tent(cover)
-    return cover
-
-
-def _tent(a: np.ndarray) -> np.ndarray:
-    p = np.pad(a, 1, mode="edge")
-    a = 0.25 * p[:-2] + 0.5 * p[1:-1] + 0.25 * p[2:]
-    return 0.25 * a[:, :-2] + 0.5 * a[:, 1:-1] + 0.25 * a[:, 2:]
+    return np.asarray(small, dtype=np.float32) / 255.0
 
 
 def headlight_share(model: mujoco.MjModel, pitch_deg: float) -> float:
