@@ -1,20 +1,24 @@
-"""The paper's look in one render pass: the static world's shadows baked into the field's texture once per world.
+"""The paper's look in one render pass: the static world's shadows baked into the scene once per world.
 
 MuJoCo draws a shadow-casting light in extra passes every frame (render_gl3.c, `mjr_render`): the scene lit by the
 lights that cast no shadow (here the headlight), a depth map from the sun, then the scene again lit by the sun alone
 with the depth map's test, added to the first. On these CPUs (Mesa's llvmpipe) those passes are two thirds of a
-frame. Nothing in this world moves but the drone, so the landmarks' shadows on the ground are the same in every
-frame: `bake` computes them once per world by projecting every landmark triangle along the sun onto the ground,
-and darkens the field's texture there to what the headlight alone gives it. The sun then lights the scene in the
-same single pass as the headlight (`camera.shadow_method = "baked"`).
+frame. Nothing in this world moves but the drone, so its shadows are the same in every frame and are drawn once per
+world (`camera.shadow_method = "baked"`), and the sun then lights the scene in the headlight's single pass:
+
+- on the ground, `bake` projects every landmark triangle along the sun onto the field and darkens the field's texture
+  there to what the headlight alone gives it;
+- on the landmarks, `face_shades` casts rays toward the sun from every face's corners and centre (MuJoCo's own ray
+  casting on the world compiled once without it); a face in another's shadow goes into a darker geom of its own part,
+  its colour scaled to what the headlight alone would give it, and a face the shadow's edge crosses is split first.
 
 One pass differs from the two in one more way: the fixed-function pipeline clamps a vertex's lit colour to 1 before
 the texture multiplies it. On the white-textured field the headlight and the sun together reach 1.15, so one pass
 would cap it where two passes add up to 1.15 times the texture. `LIGHT_SCALE` keeps every sum below 1: all lights
 and the sky are scaled down by it before rendering and the image is scaled back up after (`restore`), at the cost
-of the lowest bit. What the baked shadows leave out: a landmark's shadow on another landmark or on itself (a face
-turned away from the sun is dark either way), shadows on the lakes and beyond the field, and the drone's own shadow.
-Measured against MuJoCo's shadows: docs/experiments.md, "Rendering at the paper's look".
+of the lowest bit. Left out: shadows on the lakes and beyond the field, the drone's own shadow, the outline of
+MuJoCo's shadows (a shadow-map texel larger and stepped). Measured against MuJoCo's shadows: docs/experiments.md,
+"Rendering at the paper's look".
 """
 
 from __future__ import annotations
@@ -116,3 +120,98 @@ def bake(model: mujoco.MjModel, data: mujoco.MjData, field_size: float, pitch_de
             cover = np.maximum(cover, shadow_cover(triangles, model.light_dir[i], field_size, fh))
     keep = 1.0 - cover * (1.0 - headlight_share(model, pitch_deg))
     field[...] = np.round(tiled * keep[..., None]).astype(np.uint8)
+
+
+# -- the landmarks' own shadows -----------------------------------------------------------------------------------
+SHADE_BINS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8)  # a shadowed face's colour factor, rounded to one of these: a geom each
+HEADLIGHT_FACING = 0.5  # the headlight's diffuse term on a landmark face, taken as its mean over views
+SPLIT_DEPTH = 5  # a face the shadow's edge crosses is halved up to this many times
+MIN_EDGE = 0.1  # ... while its longest edge is over a texel of MuJoCo's shadow map (64.7 m / 1024)
+
+
+def _world_parts(world, catalogue) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """(landmark, part, vertices in the part's frame (V, 3), in the world (V, 3), faces (F, 3)) of every landmark
+    part, placed as build_spec places them (scaled, turned by the yaw, at x, y)."""
+    by_name = {m.name: m for m in catalogue}
+    out = []
+    for i, lm in enumerate(world.landmarks):
+        c, s = math.cos(lm.yaw), math.sin(lm.yaw)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        for k, part in enumerate(by_name[lm.model].parts):
+            local = np.asarray(part.vertices, dtype=float)
+            out.append((i, k, local, (local * lm.scale) @ R.T + [lm.x, lm.y, 0.0], np.asarray(part.faces)))
+    return out
+
+
+def ray_test(model: mujoco.MjModel, data: mujoco.MjData, exclude_body: int):
+    """Whether a ray from each point toward `toward` meets a geom of the compiled world (MuJoCo's own ray casting,
+    against every geom but those of `exclude_body`)."""
+    geomid = np.zeros(1, dtype=np.int32)
+
+    def blocked(points: np.ndarray, toward: np.ndarray) -> np.ndarray:
+        return np.array([mujoco.mj_ray(model, data, p, toward, None, 1, exclude_body, geomid) >= 0
+                         for p in points], dtype=bool)
+
+    return blocked
+
+
+def face_shades(world, catalogue, sun_dir: np.ndarray, headlight: tuple[float, float], sun: float, blocked
+                ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every landmark part as vertices (in its frame), faces and a colour factor per face: 1 where the sun reaches
+    the face (or the face turns away from it, unlit by the sun either way), else what is left of its lit colour
+    under the headlight alone (ambient + diffuse * HEADLIGHT_FACING over that plus the sun's diffuse on it, rounded
+    to SHADE_BINS). A face is judged by rays toward the sun from its corners and its centre; one the shadow's edge
+    crosses (they disagree) is split at its longest edge, up to SPLIT_DEPTH times, so that the edge falls between
+    faces. `headlight` (ambient, diffuse) and `sun` (diffuse) as the model's lights are before scaling;
+    `blocked(points, toward)` says which rays toward the sun meet the world (`ray_test`, on the world compiled
+    without the split)."""
+    toward = -np.asarray(sun_dir, dtype=float) / np.linalg.norm(sun_dir)
+    head = headlight[0] + headlight[1] * HEADLIGHT_FACING
+    bins = np.asarray(SHADE_BINS)
+    out = {}
+    for i, k, local, placed, faces in _world_parts(world, catalogue):
+        local_v, world_v = local.copy(), placed.copy()
+        known = np.full(len(world_v), -1, dtype=np.int8)  # a vertex's ray: -1 not cast, 0 free, 1 blocked
+        done_faces, shades = [np.zeros((0, 3), dtype=np.int64)], [np.zeros(0)]
+        todo, depth = np.asarray(faces, dtype=np.int64), 0
+        while len(todo):
+            tri = world_v[todo]
+            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            length = np.linalg.norm(normal, axis=1)
+            lit = np.where(length > 0, (normal @ toward) / np.maximum(length, 1e-12), 0.0)
+            facing = lit > 0.05
+            corners = np.unique(todo[facing])
+            ask = corners[known[corners] < 0]
+            known[ask] = blocked(world_v[ask] + 2e-3 * toward, toward)
+            centre = np.zeros(len(todo), dtype=bool)
+            centre[facing] = blocked(tri[facing].mean(axis=1) + 2e-3 * toward, toward)
+            hits = np.concatenate([centre[:, None], known[todo] == 1], axis=1) & facing[:, None]
+            longest = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=2).max(axis=1)
+            split = facing & hits.any(axis=1) & ~hits.all(axis=1) & (depth < SPLIT_DEPTH) & (longest > MIN_EDGE)
+            keep = ~split
+            factor = np.where(centre, bins[np.abs((head / (head + sun * np.maximum(lit, 1e-6)))[:, None]
+                                                  - bins[None]).argmin(axis=1)], 1.0)
+            done_faces.append(todo[keep])
+            shades.append(factor[keep])
+            todo, local_v, world_v, known = _split_longest(todo[split], local_v, world_v, known)
+            depth += 1
+        out[(i, k)] = (local_v, np.concatenate(done_faces).astype(np.int32), np.concatenate(shades))
+    return out
+
+
+def _split_longest(faces: np.ndarray, local_v: np.ndarray, world_v: np.ndarray, known: np.ndarray):
+    """Each face halved at the middle of its longest edge: the two halves, and the vertex lists (and their rays'
+    results, unknown for the new ones) with the middles appended."""
+    if not len(faces):
+        return faces, local_v, world_v, known
+    tri = world_v[faces]
+    edges = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=2)  # edge e runs from corner e to corner e + 1
+    e = edges.argmax(axis=1)
+    rows = np.arange(len(faces))
+    a, b, c = faces[rows, e], faces[rows, (e + 1) % 3], faces[rows, (e + 2) % 3]
+    m = np.arange(len(world_v), len(world_v) + len(faces))
+    local_v = np.concatenate([local_v, (local_v[a] + local_v[b]) / 2])
+    world_v = np.concatenate([world_v, (world_v[a] + world_v[b]) / 2])
+    known = np.concatenate([known, np.full(len(faces), -1, dtype=np.int8)])
+    halves = np.concatenate([np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)])
+    return halves, local_v, world_v, known

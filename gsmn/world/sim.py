@@ -30,6 +30,9 @@ from gsmn.world.assets import AssetModel, load_catalogue
 from gsmn.world.spec import WorldSpec
 
 GRAVITY = 9.81
+HEADLIGHT = (0.35, 0.25)  # the headlight's ambient and diffuse grey (it follows the camera)
+SUN = 0.75  # the sun's diffuse grey (its blue a little less: 0.72)
+SUN_DIR = (0.35, 0.25, -1.0)  # the way the sun shines; it casts the shadows
 FPV_CAMERA = "fpv"
 TOPDOWN_CAMERA = "topdown"
 # MuJoCo camera frame (x right, y up, looking along -z) -> computer-vision frame (x right, y down, z forward).
@@ -44,7 +47,7 @@ _BASE_XML = """
   <visual>
     <quality shadowsize="{shadow_size}" offsamples="{offsamples}"/>
     <global offwidth="{offwidth}" offheight="{offheight}"/>
-    <headlight ambient="0.35 0.35 0.35" diffuse="0.25 0.25 0.25" specular="0 0 0"/>
+    <headlight ambient="{head_ambient}" diffuse="{head_diffuse}" specular="0 0 0"/>
     <map znear="0.02" zfar="200"/>
   </visual>
   <asset>
@@ -59,7 +62,7 @@ _BASE_XML = """
     <material name="water" rgba="0.20 0.42 0.75 1" specular="0.3" shininess="0.6"/>
   </asset>
   <worldbody>
-    <light name="sun" directional="true" pos="0 0 30" dir="0.35 0.25 -1" diffuse="0.75 0.75 0.72"
+    <light name="sun" directional="true" pos="0 0 30" dir="{sun_dir}" diffuse="{sun} {sun} {sun_blue}"
            specular="0.1 0.1 0.1" castshadow="{shadows}"/>
     <geom name="outside" type="plane" size="{outside} {outside} 0.1" pos="{half} {half} -0.02"
           material="outside"/>
@@ -108,8 +111,21 @@ def intrinsics(camera: CameraConfig) -> np.ndarray:
 
 def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel, ...] | None = None
                ) -> mujoco.MjSpec:
-    """An MjSpec of the world: base scene and drone from XML, then landmark meshes and lakes added."""
+    """An MjSpec of the world: base scene and drone from XML, then landmark meshes and lakes added. With baked
+    shadows each landmark part's faces in another's shadow go into a darker geom of their own (the world compiled
+    once as it is, for MuJoCo's ray casting, to find them)."""
     catalogue = catalogue or load_catalogue()
+    shades = {}
+    if config.camera.shadows and config.camera.shadow_method == "baked":
+        model = _spec(world, config, catalogue, {}).compile()
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        blocked = shadows.ray_test(model, data, model.body("drone").id)
+        shades = shadows.face_shades(world, catalogue, np.array(SUN_DIR), HEADLIGHT, SUN, blocked)
+    return _spec(world, config, catalogue, shades)
+
+
+def _spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel, ...], shades: dict) -> mujoco.MjSpec:
     by_name = {m.name: m for m in catalogue}
     drone, cam = config.drone, config.camera
     half = world.field_size / 2
@@ -122,20 +138,28 @@ def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel,
         half=half, outside=4 * world.field_size, topdown=TOPDOWN_CAMERA, topdown_extent=topdown_extent(world),
         altitude=drone.altitude, mass=drone.mass, ixx=ixx, izz=2 * ixx, arms=_arms_xml(drone.arm_length),
         fpv=FPV_CAMERA, cam_forward=cam.forward_offset, sp=math.sin(pitch), cp=math.cos(pitch),
-        fovy=cam.vfov_deg, max_thrust=3 * drone.mass * GRAVITY, **_field_texture(cam))
+        fovy=cam.vfov_deg, max_thrust=3 * drone.mass * GRAVITY, head_ambient=f"{HEADLIGHT[0]} " * 3,
+        head_diffuse=f"{HEADLIGHT[1]} " * 3,
+        sun=SUN, sun_blue=SUN - 0.03, sun_dir=" ".join(map(str, SUN_DIR)), **_field_texture(cam))
     spec = mujoco.MjSpec.from_string(xml)
     for i, lm in enumerate(world.landmarks):
         model = by_name[lm.model]
         body = spec.worldbody.add_body(name=f"landmark_{i}", pos=[lm.x, lm.y, 0.0],
                                        quat=_yaw_quat(lm.yaw))
         for k, part in enumerate(model.parts):
-            mesh = spec.add_mesh(name=f"landmark_{i}_part_{k}")
-            mesh.uservert = part.vertices.ravel().tolist()
-            mesh.userface = part.faces.ravel().tolist()
-            mesh.scale = [lm.scale] * 3
-            mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # scenery: never simulated
-            body.add_geom(name=f"landmark_{i}_geom_{k}", type=mujoco.mjtGeom.mjGEOM_MESH,
-                          meshname=mesh.name, rgba=list(part.rgba), contype=0, conaffinity=0)
+            vertices, faces, shade = shades.get((i, k), (part.vertices, part.faces, None))
+            pieces = [(1.0, faces)] if shade is None else [  # baked: its shadowed faces darker, a geom per shade
+                (float(f), faces[shade == f]) for f in np.unique(shade)]
+            for n, (factor, faces) in enumerate(pieces):
+                suffix = "" if n == 0 else f"_shade_{n}"
+                mesh = spec.add_mesh(name=f"landmark_{i}_part_{k}{suffix}")
+                mesh.uservert = np.asarray(vertices).ravel().tolist()
+                mesh.userface = faces.ravel().tolist()
+                mesh.scale = [lm.scale] * 3
+                mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # scenery: never simulated
+                rgba = [*(c * factor for c in part.rgba[:3]), part.rgba[3]]
+                body.add_geom(name=f"landmark_{i}_geom_{k}{suffix}", type=mujoco.mjtGeom.mjGEOM_MESH,
+                              meshname=mesh.name, rgba=rgba, contype=0, conaffinity=0)
     for i, lake in enumerate(world.lakes):
         spec.worldbody.add_geom(name=f"lake_{i}", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
                                 size=[lake.radius_x, lake.radius_y, 0.015], pos=[lake.x, lake.y, 0.0],
