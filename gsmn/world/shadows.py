@@ -126,7 +126,7 @@ def bake(model: mujoco.MjModel, data: mujoco.MjData, field_size: float, pitch_de
 SHADE_BINS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8)  # a shadowed face's colour factor, rounded to one of these: a geom each
 HEADLIGHT_FACING = 0.5  # the headlight's diffuse term on a landmark face, taken as its mean over views
 SPLIT_DEPTH = 5  # a face the shadow's edge crosses is halved up to this many times
-MIN_EDGE = 0.1  # ... while its longest edge is over a texel of MuJoCo's shadow map (64.7 m / 1024)
+MIN_EDGE = 0.1  # ... while its longest edge is over 10 cm (a texel of MuJoCo's shadow map: 64.7 m / 1024 = 6 cm)
 
 
 def _world_parts(world, catalogue) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
