@@ -117,7 +117,7 @@ class CameraConfig:
     shadows: bool = _f(True, "render shadows")
     shadow_size: int = _f(1024, "shadow map size (MuJoCo's default 4096 costs ~70 ms a frame on CPU)")
     shadow_method: str = _f("mujoco", "how shadows are drawn: 'mujoco' (MuJoCo's shadow passes, every frame) or "
-                            "'baked' (the landmarks' shadows on the field drawn once per world; one pass a frame)")
+                            "'baked' (the static world's shadows drawn once per world; one pass a frame)")
     msaa: bool = _f(False, "4x multisample anti-aliasing (about +15 ms a frame on these CPUs)")
 
     def __post_init__(self) -> None:
@@ -126,6 +126,11 @@ class CameraConfig:
         _check(-89 < self.pitch_deg < 89, "camera.pitch_deg must be in (-89, 89)")
         _check(self.shadow_method in SHADOW_METHODS,
                f"camera.shadow_method must be one of {', '.join(SHADOW_METHODS)}, got {self.shadow_method!r}")
+
+    @property
+    def baked_shadows(self) -> bool:
+        """Shadows drawn once per world (gsmn/world/shadows.py) rather than by MuJoCo's passes every frame."""
+        return self.shadows and self.shadow_method == "baked"
 
     @property
     def focal(self) -> float:

@@ -116,7 +116,7 @@ def build_spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel,
     once as it is, for MuJoCo's ray casting, to find them)."""
     catalogue = catalogue or load_catalogue()
     shades = {}
-    if config.camera.shadows and config.camera.shadow_method == "baked":
+    if config.camera.baked_shadows:
         model = _spec(world, config, catalogue, {}).compile()
         data = mujoco.MjData(model)
         mujoco.mj_forward(model, data)
@@ -170,7 +170,7 @@ def _spec(world: WorldSpec, config: RunConfig, catalogue: tuple[AssetModel, ...]
 def _field_texture(cam: CameraConfig) -> dict[str, object]:
     """The field's material: the grass checker repeated, or with baked shadows one texture over the whole field
     (filled by gsmn.world.shadows.bake)."""
-    if not (cam.shadows and cam.shadow_method == "baked"):
+    if not cam.baked_shadows:
         return {"field_texture": "", "field_material_texture": shadows.GRASS_TEXTURE,
                 "field_repeat": shadows.GRASS_REPEAT}
     side = 64 * shadows.GRASS_REPEAT  # the grass checker's texels (width="64" above) over the field
@@ -268,7 +268,7 @@ class Simulator:
         self.K = intrinsics(config.camera)
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
         self.reset()
-        self._baked = config.camera.shadows and config.camera.shadow_method == "baked"
+        self._baked = config.camera.baked_shadows
         if self._baked:  # before any renderer uploads the model's textures and lights
             shadows.bake(self.model, self.data, world.field_size, config.camera.pitch_deg)
             shadows.scale_lights(self.model)
