@@ -22,8 +22,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-def _f(default: Any, help: str) -> Any:  # noqa: A002 - "help" mirrors argparse
-    return field(default=default, metadata={"help": help})
+def _f(default: Any, help: str, saved_without: Any = None) -> Any:  # noqa: A002 - "help" mirrors argparse
+    """A config field. `saved_without`: the value a saved config that lacks the field meant (a field added later
+    whose new default differs from what older files ran with); `from_dict` reads such a file so."""
+    metadata = {"help": help} if saved_without is None else {"help": help, "saved_without": saved_without}
+    return field(default=default, metadata=metadata)
 
 
 class ConfigError(ValueError):
@@ -116,8 +119,9 @@ class CameraConfig:
     forward_offset: float = _f(0.1, "camera position ahead of the body centre (m)")
     shadows: bool = _f(True, "render shadows")
     shadow_size: int = _f(1024, "shadow map size (MuJoCo's default 4096 costs ~70 ms a frame on CPU)")
-    shadow_method: str = _f("mujoco", "how shadows are drawn: 'mujoco' (MuJoCo's shadow passes, every frame) or "
-                            "'baked' (the static world's shadows drawn once per world; one pass a frame)")
+    shadow_method: str = _f("baked", "how shadows are drawn: 'baked' (the static world's shadows drawn once per world; "
+                            "one pass a frame) or 'mujoco' (MuJoCo's shadow passes, every frame); a saved config "
+                            "without this field ran with 'mujoco'", saved_without="mujoco")
     msaa: bool = _f(False, "4x multisample anti-aliasing (about +15 ms a frame on these CPUs)")
 
     def __post_init__(self) -> None:
@@ -383,13 +387,14 @@ class RunConfig:
 
 
 def from_dict(cls: type, d: dict[str, Any]) -> Any:
-    """Build a (nested) config dataclass from a plain dict; unknown keys are an error."""
+    """Build a (nested) config dataclass from a plain dict (a saved config); unknown keys are an error. A field the
+    dict lacks takes its default, or the value a config saved without it ran with (`saved_without`)."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(d) - names
+    fields = dataclasses.fields(cls)
+    unknown = set(d) - {f.name for f in fields}
     if unknown:
         raise ConfigError(f"unknown {cls.__name__} field(s): {sorted(unknown)}")
-    kwargs = {}
+    kwargs = {f.name: f.metadata["saved_without"] for f in fields if "saved_without" in f.metadata and f.name not in d}
     for name, value in d.items():
         hint = hints[name]
         if dataclasses.is_dataclass(hint) and isinstance(value, dict):

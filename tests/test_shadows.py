@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gsmn.config import CameraConfig, ConfigError, RunConfig
+from gsmn.model.checkpoint import read_checkpoint_config
 from gsmn.world import shadows
 from gsmn.world.assets import load_catalogue
 from gsmn.world.sim import HEADLIGHT, SUN, SUN_DIR, Simulator
@@ -16,6 +18,7 @@ from gsmn.world.spec import split_env_ids, world_for_env
 pytestmark = pytest.mark.unit
 
 PAPER = RunConfig()
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _sim(env_id: int, method: str) -> Simulator:
@@ -97,10 +100,17 @@ def test_the_field_texture_is_the_checker_where_nothing_shadows_it():
         sim.close()
 
 
-def test_the_shadow_method_is_checked():
+def test_the_shadow_method_is_checked_and_a_config_saved_without_it_ran_mujocos():
     with pytest.raises(ConfigError, match="shadow_method"):
         CameraConfig(shadow_method="raytraced")
-    assert CameraConfig().shadow_method == "mujoco"
+    assert CameraConfig().shadow_method == "baked"
+    saved = RunConfig().to_dict()
+    assert RunConfig.from_dict(saved).camera.shadow_method == "baked"  # written now: read as written
+    del saved["camera"]["shadow_method"]  # a checkpoint, evaluation or job folder saved before the field existed
+    assert RunConfig.from_dict(saved).camera.shadow_method == "mujoco"
+    assert RunConfig.from_dict(saved) == dataclasses.replace(RunConfig(), camera=CameraConfig(shadow_method="mujoco"))
+    shipped = read_checkpoint_config(ROOT / "checkpoints" / "gsmn")
+    assert shipped.camera.shadow_method == "mujoco"  # the shipped GSMN was trained so
 
 
 def test_landmark_faces_in_shadow_are_split_off_darker_and_the_surface_is_kept():

@@ -4,13 +4,19 @@ environments; a comparison names who flew each side and at which step each view 
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
+from test_job_faults import fake_eval, no_checkpoint
 from test_jobs_units import episode
 
 from app.jobs.db import Database
-from app.jobs.results import before_for_run, compare, same_checkpoint
+from app.jobs.manager import JobManager
+from app.jobs.results import before_for_run, compare, evaluation_config, look_words, same_checkpoint
 from app.page.compare_view import cameras_html, step_words, who_flew
 from app.render.jobs_panels import compare_html
+from gsmn.config import RunConfig
 
 pytestmark = pytest.mark.unit
 
@@ -215,3 +221,45 @@ def test_terms_of_art_carry_a_plain_gloss():
     assert glossed("| success region | never entered |") == "| success region | never entered |"
     assert glossed("P(stop)").count("<span") == 1  # one pass: a gloss is never glossed again
     assert all(f"**{term}**" in glossary_markdown() for term in GLOSSARY)
+
+
+def _folder_with_config(folder, config: dict):
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(config))
+    return str(folder)
+
+
+def test_a_before_and_a_rerun_draw_their_images_as_the_evaluation_they_stand_beside(tmp_path):
+    """Baked shadows became the default after evaluations had flown with MuJoCo's shadow passes (their folders' config
+    carries no shadow_method): a rerun flies the look of the evaluation it reruns, a 'before' of another look is no
+    before, and a replay that cannot reproduce says which looks differ."""
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    db, source, run = _record(tmp_path / "rec", start=b, failures_of=a)
+    old = RunConfig().to_dict()
+    del old["camera"]["shadow_method"]  # written before the field existed
+    db.update_evaluation(source.id, folder=_folder_with_config(tmp_path / "source", old))
+    source = db.evaluation(source.id)
+    assert evaluation_config(source, RunConfig()).camera.shadow_method == "mujoco"
+    assert evaluation_config(db.evaluation(source.id), None) is not None
+    baked = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[70, 71], label="b, baked", status="finished")
+    db.update_evaluation(baked, folder=_folder_with_config(tmp_path / "baked", RunConfig().to_dict()))
+    assert before_for_run(db, run, source) is None, "another look's evaluation is no 'before'"
+    unknown = db.add_evaluation(system="gsmn", checkpoint=b, env_ids=[70, 71], label="b, imported", status="finished")
+    assert before_for_run(db, run, source).id == unknown  # an import's look is not known: not refused
+    assert look_words(RunConfig().camera) == "baked shadows"
+    assert look_words(evaluation_config(source, None).camera) == "MuJoCo's shadow passes"
+
+    jobs = JobManager(tmp_path / "data", RunConfig(), no_checkpoint, python=fake_eval(tmp_path), poll_seconds=0.1,
+                      max_evaluations=3)
+    try:
+        base = jobs.db.add_evaluation(system="oracle", checkpoint=None, env_ids=[70, 71], label="old",
+                                      status="finished")
+        jobs.db.update_evaluation(base, folder=source.folder)
+        rerun = jobs.start_evaluation(system="oracle", baseline_id=base)  # reruns the old evaluation
+        fresh = jobs.start_evaluation(system="oracle", env_ids=[72])
+        like = jobs.start_evaluation(system="oracle", env_ids=[73], like=source)  # a 'before' on its episodes
+        flown = {e.id: json.loads((Path(e.folder) / "config.json").read_text())["camera"]["shadow_method"]
+                 for e in (rerun, fresh, like)}
+        assert flown == {rerun.id: "mujoco", fresh.id: "baked", like.id: "mujoco"}
+    finally:
+        jobs.close()

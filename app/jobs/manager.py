@@ -42,7 +42,7 @@ from pathlib import Path
 
 from app.jobs.analysis import Analyses
 from app.jobs.db import FINISHED, Database, Evaluation, Run
-from app.jobs.results import EpisodeRecorder, compare, summarize_rows
+from app.jobs.results import EpisodeRecorder, compare, evaluation_config, folder_config, summarize_rows
 from app.jobs.runs import DAGGER_KINDS, run_command, run_complete, run_progress
 from app.jobs.settings import RunSettings, run_config
 from app.jobs.supervisor import Handle, Supervisor, alive
@@ -99,12 +99,14 @@ class JobManager:
     def start_evaluation(self, checkpoint: str | None = None, system: str | None = None, split: str | None = None,
                          episodes: int | None = None, env_ids: list[int] | None = None,
                          baseline_id: int | None = None, run_id: int | None = None, workers: int = 1,
-                         mirror_ensemble: bool = False, intervention: str | None = None) -> Evaluation:
+                         mirror_ensemble: bool = False, intervention: str | None = None,
+                         like: Evaluation | None = None) -> Evaluation:
         """Launch `gsmn eval` on a split (its first `episodes`), a list of ids, or the ids of `baseline_id`, in
         `workers` processes of one torch thread each; `mirror_ensemble` flies the model as a test-time mirror
         ensemble (`--mirror-ensemble`); `intervention` ("truth-goal", ...) flies a GSMN with that map intervention
         from the first step (`--intervene`): with `baseline_id` and that evaluation's failures as `env_ids`, the
-        rescue of its failures (`rescue_failures`)."""
+        rescue of its failures (`rescue_failures`). It flies with the configuration of `like`, else of the baseline
+        (a rerun draws its images as the evaluation it reruns did), else the server's."""
         if system == "oracle" and mirror_ensemble:
             raise RunnerError("the expert has no mirror ensemble: it is a learned model's option")
         if system == "oracle":
@@ -113,6 +115,8 @@ class JobManager:
             ckpt = self.resolve_checkpoint(checkpoint)
             system = evaluation_system(system, checkpoint is not None, _checkpoint_kind(ckpt), ckpt)
         ids, label = self._evaluation_ids(split, episodes, env_ids, baseline_id)
+        like = like or (self.db.evaluation(baseline_id) if baseline_id is not None else None)
+        config = evaluation_config(like, self.config)
         if not 1 <= workers <= CORES:
             raise RunnerError(f"workers must be between 1 and {CORES} (this machine's cores), got {workers}")
         if mirror_ensemble:
@@ -127,7 +131,7 @@ class JobManager:
                                          mirror_ensemble=mirror_ensemble, intervention=intervention)
             folder = new_job_folder(self.root / "evaluations", eid)
             self.db.update_evaluation(eid, folder=str(folder))
-            (folder / "config.json").write_text(self.config.to_json() + "\n")
+            (folder / "config.json").write_text(config.to_json() + "\n")
             command = [self.python, "-m", "gsmn.cli", "eval", "--system", system,
                        *(["--checkpoint", str(ckpt)] if ckpt is not None else []),
                        "--env-ids", ",".join(map(str, ids)), "--workers", str(workers), "--threads", "1",
@@ -363,7 +367,7 @@ class JobManager:
     def _poll_evaluation(self, h: Handle) -> None:
         running, rc = alive(h)
         row = self.db.evaluation(h.id)
-        config = _folder_config(h.folder, self.config)
+        config = folder_config(h.folder, self.config)
         progress = h.folder / "progress.jsonl"
         changed = False
         if progress.is_file():
@@ -458,18 +462,6 @@ def read_regular_file(path: Path, limit: int) -> bytes:
         raise RunnerError(f"cannot read {path}: {e.strerror or e}") from e
     finally:
         os.close(fd)
-
-
-def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def _folder_config(folder: Path, default: RunConfig) -> RunConfig:
-    d = _read_json(folder / "config.json")
-    return RunConfig.from_dict(d) if d else default
 
 
 def evaluation_system(system: str | None, checkpoint_named: bool, kind: str, checkpoint: Path) -> str:

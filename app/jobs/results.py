@@ -4,6 +4,7 @@ steps and P(stop)), the evaluation's summary, and two evaluations side by side (
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from pathlib import Path
@@ -198,15 +199,46 @@ def same_checkpoint(a: str | None, b: str | None) -> bool:
 
 def before_for_run(db: Database, run, baseline: Evaluation) -> Evaluation | None:
     """The evaluation to put before a run's checkpoint: `baseline` when it flew the checkpoint the run started from,
-    else a finished evaluation of that starting checkpoint on the same environments, flown the same way (None: there
-    is none yet, so before/after would credit the change of checkpoint to the fine-tune)."""
+    else a finished evaluation of that starting checkpoint on the same environments, flown the same way (plain or
+    mirrored, with the same camera look; None: there is none yet, so before/after would credit the change of
+    checkpoint, or of look, to the fine-tune)."""
     if same_checkpoint(baseline.checkpoint, run.init_checkpoint):
         return baseline
+    camera = _camera(baseline)
     for e in reversed(db.evaluations((FINISHED,))):
         if (same_checkpoint(e.checkpoint, run.init_checkpoint)
-                and sorted(e.env_ids) == sorted(baseline.env_ids) and e.mirror_ensemble == baseline.mirror_ensemble):
+                and sorted(e.env_ids) == sorted(baseline.env_ids) and e.mirror_ensemble == baseline.mirror_ensemble
+                and (camera is None or _camera(e) in (None, camera))):
             return e
     return None
+
+
+def evaluation_config(e: Evaluation | None, default: RunConfig) -> RunConfig:
+    """The configuration an evaluation flew with: its job folder's config.json, or `default` where it has none (an
+    imported file) or it is unreadable."""
+    return folder_config(Path(e.folder), default) if e is not None and e.folder else default
+
+
+def folder_config(folder: Path, default: RunConfig) -> RunConfig:
+    """A job folder's config.json (one saved before a field existed reads as it ran, `gsmn.config.from_dict`), or
+    `default`."""
+    try:
+        return RunConfig.from_dict(json.loads((folder / "config.json").read_text()))
+    except (OSError, ValueError, TypeError):
+        return default
+
+
+def _camera(e: Evaluation):
+    """The camera an evaluation flew with, or None where that is not known."""
+    config = evaluation_config(e, None)
+    return config.camera if config is not None else None
+
+
+def look_words(camera) -> str:
+    """How a camera config draws its images, in words a user reads (the look a rerun must share to compare)."""
+    if not camera.shadows:
+        return "no shadows"
+    return "baked shadows" if camera.baked_shadows else "MuJoCo's shadow passes"
 
 
 RESCUE_ORDER = ("truth-semantic", "truth-relevance", "truth-goal")

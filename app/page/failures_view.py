@@ -14,7 +14,7 @@ import viser.uplot
 
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
 from app.jobs.evaluation_export import export_evaluation, export_name
-from app.jobs.results import replay_intervention, replay_policy, rescue_of
+from app.jobs.results import evaluation_config, look_words, replay_intervention, replay_policy, rescue_of
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
@@ -278,14 +278,22 @@ class FailuresTab:
             note = (f"Replayed as episode {episode.id}: "
                     + ("it reproduces the evaluation (same steps, final position within 1 cm). Scrub the timeline to "
                        "see its maps at any step." if same else
-                       f"it differs from the evaluation ({episode.result.steps} steps, ended {gap:.2f} m away): the "
-                       f"server's settings differ from the evaluation's."))
+                       f"it differs from the evaluation ({episode.result.steps} steps, ended {gap:.2f} m away): "
+                       + self._replay_difference(evaluation_id)))
             if self.replay_step is not None and same:
                 self.viewer._events.put(CursorMoved(self.replay_step))
                 note += f" Shown at step {self.replay_step}, where it went wrong."
             elif self.replay_step is not None:
                 note += f" It went wrong at step {self.replay_step} of the evaluation's flight, not of this one."
         self.replay_detail.content = episode_html(row, note)
+
+    def _replay_difference(self, evaluation_id: int) -> str:
+        """Why a replay may not reproduce an evaluation's episode: the look of its images, when that differs."""
+        flown = evaluation_config(self.jobs.db.evaluation(evaluation_id), None)
+        if flown is not None and flown.camera != self.runner.config.camera:
+            return (f"the evaluation's images were drawn with {look_words(flown.camera)}, the live view's with "
+                    f"{look_words(self.runner.config.camera)}, so the model may fly it differently.")
+        return "the server's settings differ from the evaluation's."
 
     def _chosen_episodes(self) -> int | None:
         """How many episodes the form would evaluate (None while its ids do not parse)."""

@@ -194,10 +194,10 @@ class FinetuneTab:
             return
         before = before_for_run(self.jobs.db, run, baseline)
         start = short_path(run.init_checkpoint)
-        try:  # flown the way the evaluation it reruns was (plain or as a mirror ensemble)
+        try:  # flown the way the evaluation it reruns was (plain or as a mirror ensemble, its camera look)
             if before is None:
                 e = self.jobs.start_evaluation(run.init_checkpoint, None, env_ids=list(baseline.env_ids),
-                                               mirror_ensemble=baseline.mirror_ensemble)
+                                               mirror_ensemble=baseline.mirror_ensemble, like=baseline)
                 self.run_note.content = (
                     f"The failures came from evaluation {baseline.id} of **{short_path(baseline.checkpoint)}**, "
                     f"but run-{run.id} started from **{start}**. Evaluation {e.id} flies {start} on the same "
