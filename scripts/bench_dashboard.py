@@ -9,7 +9,7 @@ Measures, in one process serving the page and the API:
   Ground in the page to the what-if maps drawn there;
 - live steps per second of a comparison (two episodes stepping together in one simulator) beside a single
   episode's, alternating in the same run, the fork snapshots' memory per step, and how long a fork takes to fly
-  its first step (at the last step of an episode, and 9 steps after a keyframe).
+  its first step (at the last step of an episode, and at the step before a keyframe, where it replays the most).
 
 Targets (issue 6): >= 10 live steps/s on 2 cores, first frame within 1 s, grounding within 50 ms.
 With --screenshots DIR it also writes dashboard_live.png (mid-episode) and dashboard_counterfactual.png.
@@ -250,6 +250,7 @@ def compare_and_fork(runner, env_id: int, runs: int) -> dict:
     alternating, in one run; the snapshots' memory per step; the time a fork takes to fly its first step."""
     from app.live.commands import StartEpisode
     from app.live.compare import ForkEpisode, PolicySpec, StartComparison
+    from gsmn.task.fork import KEYFRAME_EVERY
 
     single, pair, pair_total, snapshot_bytes, fork_ms = [], [], [], [], []
     for _ in range(max(runs, 1)):
@@ -264,7 +265,7 @@ def compare_and_fork(runner, env_id: int, runs: int) -> dict:
         rounds = max(len(x.steps) for x in c.episodes) - 1
         pair.append(rounds / max(last - first, 1e-9))
         pair_total.append((sum(len(x.steps) for x in c.episodes) - 2) / max(last - first, 1e-9))
-        for t in (len(e.steps) - 1, 9):  # the last step, and one just before a keyframe (9 steps replayed)
+        for t in (len(e.steps) - 1, KEYFRAME_EVERY - 1):  # the last step; the most replayed
             t0 = time.perf_counter()
             fork = runner.call(ForkEpisode(e.id, t))
             wait(lambda fork=fork, t=t: len(fork.steps) > t)

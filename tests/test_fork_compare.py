@@ -19,6 +19,7 @@ from app.live.fixtures import make_untrained_checkpoint
 from app.live.recording import FINISHED
 from app.live.runner import Runner
 from gsmn.config import preset, with_overrides
+from gsmn.task.fork import KEYFRAME_EVERY
 from gsmn.task.understand import parse_instruction
 
 pytestmark = pytest.mark.slow
@@ -76,8 +77,9 @@ def assert_same_end(fork, original, t: int) -> None:
 def test_a_fork_with_the_same_policy_ends_exactly_as_the_original(runner, policy):
     original = fly(runner, 70, None, policy)
     last = len(original.steps) - 1
-    assert last >= 20  # enough steps for a keyframe (every 10) and replays between them
-    steps = [0, 7, 10, 13, last // 2, last] if policy != "mirror" else [0, 13, last]
+    assert last >= 20  # enough steps for keyframes (every KEYFRAME_EVERY) and replays between them
+    k = KEYFRAME_EVERY
+    steps = [0, k - 1, k, 2 * k + 3, last // 2, last] if policy != "mirror" else [0, 2 * k + 3, last]
     forks = [runner.call(ForkEpisode(original.id, t)) for t in steps]
     wait_done(forks)
     for t, fork in zip(steps, forks, strict=True):

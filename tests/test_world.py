@@ -295,3 +295,54 @@ def test_cli_world_json_and_pngs(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "gsmn.cli", "world", "--env-id", "-3"], capture_output=True,
                          text=True)
     assert bad.returncode == 2 and "non-negative" in bad.stderr
+
+
+def _controller_as_vectors(ctl, qpos, qvel, v_cmd: float, omega_cmd: float) -> np.ndarray:
+    """The cascaded controller in its vector form (what DroneController computed before it was written on floats
+    for speed): the reference its float form must match to the bit."""
+    from gsmn.world.sim import GRAVITY, quat_to_R, yaw_of
+
+    c = ctl.config
+    R = quat_to_R(qpos[3:7])
+    yaw = yaw_of(R)
+    fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    v_world, omega_body = qvel[0:3], qvel[3:6]
+    yaw_rate = float(R[2] @ omega_body)
+    a_fwd = np.clip(c.velocity_gain * (v_cmd - v_world @ fwd), -ctl.max_tilt_acc, ctl.max_tilt_acc)
+    a_left = np.clip(c.velocity_gain * (0.0 - v_world @ left) + yaw_rate * v_cmd, -ctl.max_tilt_acc,
+                     ctl.max_tilt_acc)
+    a_up = c.altitude_kp * (c.altitude - qpos[2]) - c.altitude_kd * v_world[2]
+    thrust_world = c.mass * (a_fwd * fwd + a_left * left + np.array([0.0, 0.0, GRAVITY + a_up]))
+    z_body = R[:, 2]
+    thrust = max(0.0, float(thrust_world @ z_body))
+    z_des = thrust_world / np.linalg.norm(thrust_world)
+    err_body = R.T @ np.cross(z_body, z_des)
+    rate_err = R.T @ np.array([0.0, 0.0, omega_cmd]) - omega_body
+    torque = ctl.inertia * np.array([c.attitude_kp * err_body[0] + c.attitude_kd * rate_err[0],
+                                     c.attitude_kp * err_body[1] + c.attitude_kd * rate_err[1],
+                                     c.yaw_rate_gain * rate_err[2]])
+    torque += np.cross(omega_body, ctl.inertia * omega_body)
+    return np.array([thrust, torque[0], torque[1], torque[2]])
+
+
+def test_the_controller_on_floats_is_its_vector_form_to_the_bit():
+    """Every substep of flights with changing commands: the same thrust and torques, so the same flights."""
+    import mujoco
+
+    rng = np.random.default_rng(7)
+    sim = Simulator(world_for_env(split_env_ids("test", 3)[2], TINY.world), TINY, load_catalogue())
+    try:
+        calls = 0
+        for _ in range(40):
+            v, w = rng.uniform(-0.5, 3.0), rng.uniform(-1.5, 1.5)
+            for _ in range(TINY.drone.substeps):
+                d = sim.data
+                ours = sim.controller(d.qpos, d.qvel, v, w)
+                assert np.array_equal(ours, _controller_as_vectors(sim.controller, d.qpos, d.qvel, v, w)), calls
+                d.ctrl[:] = ours
+                mujoco.mj_step(sim.model, d)
+                calls += 1
+        assert abs(sim.yaw) > 0.1 and sim.position[2] > 0.5  # it flew: turned, and held its altitude
+    finally:
+        sim.close()

@@ -290,7 +290,7 @@ class Comparisons:
         """One step of one of the pair, from its own simulator state; True when its episode has ended."""
         env = self.runner.env
         if states[i] is not None:
-            env.set_state(states[i])
+            env.restore(states[i])  # the step observes after it acts: no image of the restored state is needed
         try:
             next(gen)
             states[i] = env.get_state()

@@ -12,8 +12,9 @@ the instruction makes at reset (the sentence embedding and the language kernels)
 it puts the simulator back at each of them, renders the same image, and lets the policy act on it (the action is
 discarded), which rebuilds the semantic map exactly, since perception does not depend on the instruction. A fork
 with another model, whose map the flight never held, replays every step from 0 the same way, so its map is the one
-it would have built along the original's path. With `every=10` a fork replays at most 9 steps of the same model;
-the snapshots of a 150-step episode take about 2 MB (docs/compare.md, "Forks").
+it would have built along the original's path. With `every=5` a fork replays at most 4 steps of the same model
+(each a render and a model step, about 25 ms on these cores); the snapshots of a 150-step episode take about 4 MB
+(docs/compare.md, "Forks").
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 from gsmn.task.rollout import RolloutStart
 from gsmn.world.env import Env, EnvState
 
-KEYFRAME_EVERY = 10
+KEYFRAME_EVERY = 5  # every 10 halved the memory, but a fork then replayed up to 9 steps: 0.6 s with the page open
 
 
 @dataclass

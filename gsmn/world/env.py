@@ -111,11 +111,15 @@ class Env:
 
     def set_state(self, state: EnvState) -> Observation:
         """Return to a state from `get_state` of this world (reset to it first) and observe there."""
+        self.restore(state)
+        return self.observe()
+
+    def restore(self, state: EnvState) -> None:
+        """`set_state` without the observation (no image rendered): for a caller that steps on at once."""
         if self.sim is None or self.sim.world.env_id != state.env_id:
             raise RuntimeError(f"the state is of environment {state.env_id}; reset the Env to it first")
         self.sim.set_state(state.physics)
         self._step = state.step
-        return self.observe()
 
     def move_to(self, world: WorldSpec) -> Observation:
         """The drone, as it is, in another world of the same environment (its landmarks edited: gsmn.task.edits),
