@@ -284,8 +284,8 @@ class PartialResults:
                                  "that stopped before its end: pass --resume to fly only the rest, or remove the "
                                  "file to start again")
             try:
-                old = json.loads(lines[0]) if lines else None
-            except json.JSONDecodeError:
+                old = _settings_as_read(json.loads(lines[0])) if lines else None
+            except (json.JSONDecodeError, ValueError, TypeError, AttributeError):
                 old = None
             if old != header:
                 differs = sorted(k for k in header if old is None or old.get(k) != header[k])
@@ -310,6 +310,15 @@ class PartialResults:
         self.path.unlink(missing_ok=True)
 
 
+def _settings_as_read(header: dict) -> dict:
+    """A partial file's header with its settings as this code reads them: a field the file was written without
+    takes the value it ran with (`gsmn.config.from_dict`), so an evaluation written before a field existed resumes
+    under the settings it flew."""
+    if isinstance(header.get("config"), dict):
+        header = {**header, "config": json.loads(RunConfig.from_dict(header["config"]).to_json())}
+    return header
+
+
 def merge_results(parts: Sequence[dict]) -> dict:
     """One evaluation from several `results_dict`s of the same system, checkpoint and settings on disjoint
     environments (an evaluation run in pieces), with the summary recomputed over all episodes.
@@ -327,7 +336,7 @@ def merge_results(parts: Sequence[dict]) -> dict:
             raise ValueError("one evaluation ran as a mirror ensemble, another did not")
         if part.get("ensemble_with", []) != first.get("ensemble_with", []):
             raise ValueError("the evaluations flew different ensembles")
-        if part["config"] != first["config"]:
+        if RunConfig.from_dict(part["config"]) != RunConfig.from_dict(first["config"]):
             raise ValueError("the evaluations ran with different settings")
         if part["checkpoint"] != first["checkpoint"]:
             a, b = _checkpoint_bytes(first["checkpoint"]), _checkpoint_bytes(part["checkpoint"])

@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -404,3 +405,28 @@ def test_region_counts_counts_the_stops_an_ensembles_mean_took_away(tmp_path):
     assert "| ens | 2 | 0 | 2 |" in run.stdout
     assert ("ens: of 2 failures that flew through the region, 1 had a step there at which a member alone would have "
             "said STOP but the mean did not (per member: 0, 1)") in run.stdout
+
+
+def test_a_partial_evaluation_saved_before_a_setting_existed_resumes_with_the_setting_it_flew(tmp_path):
+    """Baked shadows became the default after evaluations had been written without `camera.shadow_method`: a
+    partial file (or a piece to merge) without it reads as MuJoCo's shadow passes, the look it flew, so it resumes
+    or merges under that look and is refused under another, naming the settings."""
+    from gsmn.config import RunConfig, with_overrides
+    from gsmn.evaluation import PartialResults
+
+    mujoco = with_overrides(RunConfig(), {"camera.shadow_method": "mujoco"})
+    old = mujoco.to_dict()
+    del old["camera"]["shadow_method"]
+    record = evaluate("oracle", [70], preset("tiny"))[0]
+    path = tmp_path / "out.json"
+    header = {"system": "oracle", "env_ids": [70, 71], "checkpoint": None, "config": old}
+    Path(str(path) + ".partial.jsonl").write_text(json.dumps(header) + "\n" + json.dumps(record.to_dict()) + "\n")
+    with pytest.raises(ValueError, match=r"other settings \(config\)"):
+        PartialResults(path).open({**header, "config": RunConfig().to_dict()}, resume=True)
+    assert PartialResults(path).open({**header, "config": mujoco.to_dict()}, resume=True) == [record]
+    other = evaluate("oracle", [71], preset("tiny"))[0]
+    piece = results_dict("oracle", None, [record], mujoco, 1.0, 1)
+    assert merge_results([{**piece, "config": old}, results_dict("oracle", None, [other], mujoco, 1.0, 1)]
+                         )["env_ids"] == [70, 71]
+    with pytest.raises(ValueError, match="different settings"):
+        merge_results([{**piece, "config": old}, results_dict("oracle", None, [other], RunConfig(), 1.0, 1)])

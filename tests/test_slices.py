@@ -196,3 +196,15 @@ def test_the_landmark_ended_at_is_the_named_one_first_and_a_twin_is_told_apart()
     assert slices.select([row], cell=("stopped_at", "pumpkin", "another pumpkin")) == [1]
     assert slices.valid_facts(facts) and not slices.valid_facts(facts | {"went_wrong": "x"})
     assert not slices.valid_facts({k: v for k, v in facts.items() if k != "version"})
+
+
+def test_an_evaluation_without_its_config_reads_with_the_look_it_flew():
+    """A compact Table 2 evaluation keeps its recipe, not its config: one saved before recipes named their look flew
+    MuJoCo's shadow passes, whatever the default look is now."""
+    from gsmn.config import RunConfig
+
+    config_of = slices.config_of
+    assert config_of({"recipe": {"preset": "paper"}}).camera.shadow_method == "mujoco"
+    assert config_of({"recipe": {"preset": "paper", "shadow_method": "baked"}}).camera.shadow_method == "baked"
+    assert config_of({}).camera.shadow_method == "mujoco"
+    assert config_of({"config": RunConfig().to_dict()}).camera.shadow_method == "baked"

@@ -411,13 +411,15 @@ def analyze(rows: Sequence[Mapping[str, Any]], other: Sequence[Mapping[str, Any]
 
 # -- an evaluation file -----------------------------------------------------------------------------------------------
 def config_of(results: Mapping[str, Any]):
-    """The RunConfig an evaluation flew under: its own ("config"), else its recipe's preset (compact Table 2
-    evaluations), else the paper's."""
-    from gsmn.config import RunConfig, preset
+    """The RunConfig an evaluation flew under: its own ("config"), else its recipe's preset and look (compact Table 2
+    evaluations; a recipe saved without a look flew MuJoCo's shadow passes), else the paper's."""
+    from gsmn.config import RunConfig, preset, with_overrides
 
     if results.get("config"):
         return RunConfig.from_dict(results["config"])
-    return preset((results.get("recipe") or {}).get("preset", "paper"))
+    recipe = results.get("recipe") or {}
+    return with_overrides(preset(recipe.get("preset", "paper")),
+                          {"camera.shadow_method": recipe.get("shadow_method", "mujoco")})
 
 
 def with_facts(results: Mapping[str, Any], record=None, checkpoint=None, log=None) -> list[dict[str, Any]]:
