@@ -21,11 +21,13 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+_UNSET = object()
 
-def _f(default: Any, help: str, saved_without: Any = None) -> Any:  # noqa: A002 - "help" mirrors argparse
+
+def _f(default: Any, help: str, saved_without: Any = _UNSET) -> Any:  # noqa: A002 - "help" mirrors argparse
     """A config field. `saved_without`: the value a saved config that lacks the field meant (a field added later
     whose new default differs from what older files ran with); `from_dict` reads such a file so."""
-    metadata = {"help": help} if saved_without is None else {"help": help, "saved_without": saved_without}
+    metadata = {"help": help} if saved_without is _UNSET else {"help": help, "saved_without": saved_without}
     return field(default=default, metadata=metadata)
 
 
@@ -121,7 +123,8 @@ class CameraConfig:
     shadow_size: int = _f(1024, "shadow map size (MuJoCo's default 4096 costs ~70 ms a frame on CPU)")
     shadow_method: str = _f("baked", "how shadows are drawn: 'baked' (the static world's shadows drawn once per world; "
                             "one pass a frame) or 'mujoco' (MuJoCo's shadow passes, every frame); a saved config "
-                            "without this field ran with 'mujoco'", saved_without="mujoco")
+                            "without this field ran with 'mujoco', and so reads a camera without shadows (nothing to "
+                            "draw either way)", saved_without="mujoco")
     msaa: bool = _f(False, "4x multisample anti-aliasing (about +15 ms a frame on these CPUs)")
 
     def __post_init__(self) -> None:
@@ -130,6 +133,8 @@ class CameraConfig:
         _check(-89 < self.pitch_deg < 89, "camera.pitch_deg must be in (-89, 89)")
         _check(self.shadow_method in SHADOW_METHODS,
                f"camera.shadow_method must be one of {', '.join(SHADOW_METHODS)}, got {self.shadow_method!r}")
+        if not self.shadows:  # the method draws nothing: one value, so that equal images mean equal configs
+            object.__setattr__(self, "shadow_method", "mujoco")
 
     @property
     def baked_shadows(self) -> bool:

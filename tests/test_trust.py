@@ -8,17 +8,22 @@ import json
 from pathlib import Path
 
 import pytest
-from test_job_faults import fake_eval, no_checkpoint
+from test_job_faults import fake_eval
 from test_jobs_units import episode
 
 from app.jobs.db import Database
 from app.jobs.manager import JobManager
 from app.jobs.results import before_for_run, compare, evaluation_config, look_words, same_checkpoint
+from app.jobs.settings import run_settings
+from app.live.commands import RunnerError
 from app.page.compare_view import cameras_html, step_words, who_flew
 from app.render.jobs_panels import compare_html
-from gsmn.config import RunConfig
+from gsmn.config import RunConfig, preset
+from gsmn.evaluation import evaluate, results_dict
 
 pytestmark = pytest.mark.unit
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _record(tmp_path, start: str, failures_of: str, env_ids=(70, 71), trained=(70, 71)):
@@ -231,8 +236,9 @@ def _folder_with_config(folder, config: dict):
 
 def test_a_before_and_a_rerun_draw_their_images_as_the_evaluation_they_stand_beside(tmp_path):
     """Baked shadows became the default after evaluations had flown with MuJoCo's shadow passes (their folders' config
-    carries no shadow_method): a rerun flies the look of the evaluation it reruns, a 'before' of another look is no
-    before, and a replay that cannot reproduce says which looks differ."""
+    carries no shadow_method): a rerun flies the look of the evaluation it reruns, an imported evaluation keeps the
+    look its file names, a fine-tuning run on an evaluation's failures trains under its look, and a 'before' of
+    another look is no before."""
     a, b = str(tmp_path / "a"), str(tmp_path / "b")
     db, source, run = _record(tmp_path / "rec", start=b, failures_of=a)
     old = RunConfig().to_dict()
@@ -249,8 +255,8 @@ def test_a_before_and_a_rerun_draw_their_images_as_the_evaluation_they_stand_bes
     assert look_words(RunConfig().camera) == "baked shadows"
     assert look_words(evaluation_config(source, None).camera) == "MuJoCo's shadow passes"
 
-    jobs = JobManager(tmp_path / "data", RunConfig(), no_checkpoint, python=fake_eval(tmp_path), poll_seconds=0.1,
-                      max_evaluations=3)
+    jobs = JobManager(tmp_path / "data", RunConfig(), lambda ref: ROOT / "checkpoints" / "gsmn",
+                      python=fake_eval(tmp_path), poll_seconds=0.1, max_evaluations=4)
     try:
         base = jobs.db.add_evaluation(system="oracle", checkpoint=None, env_ids=[70, 71], label="old",
                                       status="finished")
@@ -261,5 +267,16 @@ def test_a_before_and_a_rerun_draw_their_images_as_the_evaluation_they_stand_bes
         flown = {e.id: json.loads((Path(e.folder) / "config.json").read_text())["camera"]["shadow_method"]
                  for e in (rerun, fresh, like)}
         assert flown == {rerun.id: "mujoco", fresh.id: "baked", like.id: "mujoco"}
+        run = jobs.start_run(run_settings("tiny"), checkpoint="shipped", env_ids=[70], evaluation_id=base)
+        assert json.loads((Path(run.folder) / "config.json").read_text())["camera"]["shadow_method"] == "mujoco"
+        # an evaluation file imported: its settings as read are kept beside it, for its reruns
+        results = results_dict("oracle", None, evaluate("oracle", [70], preset("tiny")), RunConfig(), 1.0, 1)
+        results["config"] = old
+        (tmp_path / "data" / "old.json").write_text(json.dumps(results))
+        imported = jobs.import_evaluation("old.json")
+        assert evaluation_config(imported, RunConfig()).camera.shadow_method == "mujoco"
+        (Path(imported.folder) / "config.json").write_text("{")  # damaged: refused, naming it, not flown otherwise
+        with pytest.raises(RunnerError, match="cannot read the settings"):
+            jobs.start_evaluation(system="oracle", baseline_id=imported.id)
     finally:
         jobs.close()

@@ -243,6 +243,9 @@ class JobManager:
             label += f", with {len(others)} more checkpoint{'s' if len(others) > 1 else ''}"
         eid = self.db.add_evaluation(system=system, checkpoint=results.get("checkpoint"), env_ids=ids,
                                      label=label, source="import", status=FINISHED, mirror_ensemble=mirror)
+        folder = new_job_folder(self.root / "evaluations", eid)  # its settings as read, for reruns to fly the same
+        (folder / "config.json").write_text(config.to_json() + "\n")
+        self.db.update_evaluation(eid, folder=str(folder))
         for position, ep in enumerate(episodes):
             self.episodes.record(eid, position, ep, config, results.get("checkpoint") if system != "oracle" else None,
                                  Path(record_dir) if record_dir else None)
@@ -290,8 +293,10 @@ class JobManager:
                   evaluation_id: int | None = None) -> Run:
         """Launch DAggerFM from a checkpoint on the train split, on `env_ids`, or on the failures of
         `evaluation_id` (when env_ids is not given). The job's folder keeps the run's configuration (config.json),
-        which both of its commands start from."""
-        config = run_config(self.config, settings)
+        which both of its commands start from: the server's, or the evaluation's (its camera's look with it), which
+        the run's before/after flies again."""
+        base = evaluation_config(self.evaluation(evaluation_id), self.config) if evaluation_id is not None else None
+        config = run_config(base or self.config, settings)
         init = self.resolve_checkpoint(checkpoint)
         kind = _checkpoint_kind(init)
         if kind not in DAGGER_KINDS:

@@ -221,16 +221,28 @@ def evaluation_config(e: Evaluation | None, default: RunConfig) -> RunConfig:
 
 def folder_config(folder: Path, default: RunConfig) -> RunConfig:
     """A job folder's config.json (one saved before a field existed reads as it ran, `gsmn.config.from_dict`), or
-    `default`."""
-    try:
-        return RunConfig.from_dict(json.loads((folder / "config.json").read_text()))
-    except (OSError, ValueError, TypeError):
+    `default` where it has none; one it cannot read is an error that names it (a rerun must not fly other
+    settings than the evaluation it reruns)."""
+    path = folder / "config.json"
+    if not path.is_file():
         return default
+    try:
+        return RunConfig.from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as e:  # ConfigError is a ValueError
+        raise RunnerError(f"cannot read the settings in {path}: {e}") from e
+
+
+def has_config(e: Evaluation) -> bool:
+    """Whether the settings an evaluation flew with are known (a job folder with its config.json)."""
+    return bool(e.folder) and (Path(e.folder) / "config.json").is_file()
 
 
 def _camera(e: Evaluation):
-    """The camera an evaluation flew with, or None where that is not known."""
-    config = evaluation_config(e, None)
+    """The camera an evaluation flew with, or None where that is not known (or cannot be read)."""
+    try:
+        config = evaluation_config(e, None)
+    except RunnerError:
+        return None
     return config.camera if config is not None else None
 
 

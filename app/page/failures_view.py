@@ -289,8 +289,11 @@ class FailuresTab:
 
     def _replay_difference(self, evaluation_id: int) -> str:
         """Why a replay may not reproduce an evaluation's episode: the look of its images, when that differs."""
-        flown = evaluation_config(self.jobs.db.evaluation(evaluation_id), None)
-        if flown is not None and flown.camera != self.runner.config.camera:
+        try:
+            flown = evaluation_config(self.jobs.db.evaluation(evaluation_id), None)
+        except RunnerError:
+            flown = None
+        if flown is not None and look_words(flown.camera) != look_words(self.runner.config.camera):
             return (f"the evaluation's images were drawn with {look_words(flown.camera)}, the live view's with "
                     f"{look_words(self.runner.config.camera)}, so the model may fly it differently.")
         return "the server's settings differ from the evaluation's."

@@ -12,7 +12,7 @@ import viser
 import viser.uplot
 
 from app.jobs.db import ACTIVE, FAILED, FINISHED, Run
-from app.jobs.results import before_for_run, same_checkpoint
+from app.jobs.results import before_for_run, has_config, same_checkpoint
 from app.jobs.settings import RUN_PRESETS, run_settings
 from app.live.commands import RunnerError
 from app.render.estimates import run_estimate, run_remaining
@@ -205,7 +205,8 @@ class FinetuneTab:
                 self._refresh()
                 return
             e = self.jobs.start_evaluation(run.checkpoint, None, baseline_id=before.id, run_id=run.id,
-                                           mirror_ensemble=before.mirror_ensemble)
+                                           mirror_ensemble=before.mirror_ensemble,
+                                           like=before if has_config(before) else baseline)
         except RunnerError as err:
             self.run_note.content = error_html(f"**Not started:** {html.escape(str(err))}")
             return
