@@ -285,7 +285,7 @@ class PartialResults:
                                  "file to start again")
             try:
                 old = _settings_as_read(json.loads(lines[0])) if lines else None
-            except (json.JSONDecodeError, ValueError, TypeError, AttributeError):
+            except (ValueError, TypeError, AttributeError):  # not JSON, or settings this code cannot read
                 old = None
             if old != header:
                 differs = sorted(k for k in header if old is None or old.get(k) != header[k])

@@ -295,14 +295,13 @@ class JobManager:
         `evaluation_id` (when env_ids is not given). The job's folder keeps the run's configuration (config.json),
         which both of its commands start from: the server's, or the evaluation's (its camera's look with it), which
         the run's before/after flies again."""
-        base = evaluation_config(self.evaluation(evaluation_id), self.config) if evaluation_id is not None else None
-        config = run_config(base or self.config, settings)
+        source = self.evaluation(evaluation_id) if evaluation_id is not None else None
+        config = run_config(evaluation_config(source, self.config), settings)
         init = self.resolve_checkpoint(checkpoint)
         kind = _checkpoint_kind(init)
         if kind not in DAGGER_KINDS:
             raise RunnerError(f"checkpoint {init} holds a {kind!r} model, which DAggerFM cannot train")
-        if evaluation_id is not None:
-            source = self.evaluation(evaluation_id)
+        if source is not None:
             if env_ids is None:
                 env_ids = [e.env_id for e in self.db.episodes(source.id, failed_only=True)]
                 if not env_ids:

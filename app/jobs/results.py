@@ -204,18 +204,18 @@ def before_for_run(db: Database, run, baseline: Evaluation) -> Evaluation | None
     checkpoint, or of look, to the fine-tune)."""
     if same_checkpoint(baseline.checkpoint, run.init_checkpoint):
         return baseline
-    camera = _camera(baseline)
+    camera = evaluation_camera(baseline)
     for e in reversed(db.evaluations((FINISHED,))):
         if (same_checkpoint(e.checkpoint, run.init_checkpoint)
                 and sorted(e.env_ids) == sorted(baseline.env_ids) and e.mirror_ensemble == baseline.mirror_ensemble
-                and (camera is None or _camera(e) in (None, camera))):
+                and (camera is None or evaluation_camera(e) in (None, camera))):
             return e
     return None
 
 
 def evaluation_config(e: Evaluation | None, default: RunConfig) -> RunConfig:
     """The configuration an evaluation flew with: its job folder's config.json, or `default` where it has none (an
-    imported file) or it is unreadable."""
+    evaluation imported before imports kept theirs); `folder_config` refuses one it cannot read."""
     return folder_config(Path(e.folder), default) if e is not None and e.folder else default
 
 
@@ -237,7 +237,7 @@ def has_config(e: Evaluation) -> bool:
     return bool(e.folder) and (Path(e.folder) / "config.json").is_file()
 
 
-def _camera(e: Evaluation):
+def evaluation_camera(e: Evaluation):
     """The camera an evaluation flew with, or None where that is not known (or cannot be read)."""
     try:
         config = evaluation_config(e, None)

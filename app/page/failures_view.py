@@ -14,7 +14,7 @@ import viser.uplot
 
 from app.jobs.db import ACTIVE, EpisodeRow, Evaluation
 from app.jobs.evaluation_export import export_evaluation, export_name
-from app.jobs.results import evaluation_config, look_words, replay_intervention, replay_policy, rescue_of
+from app.jobs.results import evaluation_camera, look_words, replay_intervention, replay_policy, rescue_of
 from app.live.commands import RunnerError, StartEpisode
 from app.live.recording import Episode
 from app.page.controls import EXPERT_CHOICE
@@ -289,12 +289,9 @@ class FailuresTab:
 
     def _replay_difference(self, evaluation_id: int) -> str:
         """Why a replay may not reproduce an evaluation's episode: the look of its images, when that differs."""
-        try:
-            flown = evaluation_config(self.jobs.db.evaluation(evaluation_id), None)
-        except RunnerError:
-            flown = None
-        if flown is not None and look_words(flown.camera) != look_words(self.runner.config.camera):
-            return (f"the evaluation's images were drawn with {look_words(flown.camera)}, the live view's with "
+        flown = evaluation_camera(self.jobs.db.evaluation(evaluation_id))
+        if flown is not None and look_words(flown) != look_words(self.runner.config.camera):
+            return (f"the evaluation's images were drawn with {look_words(flown)}, the live view's with "
                     f"{look_words(self.runner.config.camera)}, so the model may fly it differently.")
         return "the server's settings differ from the evaluation's."
 

@@ -223,10 +223,9 @@ class DroneController:
         per-call cost made it a fifth of a live step; the arithmetic is numpy's, term for term, so the result is
         the same to the bit (tests/test_world.py keeps the vector form as the reference)."""
         c = self.config
-        R = np.empty(9)
-        mujoco.mju_quat2Mat(R, qpos[3:7])
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.tolist()  # R_world_body, row by row
-        yaw = math.atan2(r10, r00)
+        R = quat_to_R(qpos[3:7])  # R_world_body
+        yaw = yaw_of(R)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.ravel().tolist()  # row by row
         cos_yaw, sin_yaw = math.cos(yaw), math.sin(yaw)  # fwd = (cos, sin, 0), left = (-sin, cos, 0)
         vx, vy, vz, wx, wy, wz = qvel[0:6].tolist()  # world velocity, body rates
         # Velocity loop in the heading frame: no lateral velocity is ever commanded. The heading frame turns
