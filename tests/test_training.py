@@ -388,6 +388,45 @@ def test_state_killed_between_its_two_renames_is_recovered(tmp_path):
     assert (state.epoch, state.step) == (1, 7) and (run.state_dir / "state.json").is_file()
 
 
+def test_an_epoch_is_logged_only_once_its_state_is_saved(stores, tmp_path, monkeypatch):
+    """A monitor (the dashboard) shows each logged record as a saved epoch: a run cancelled between logging and
+    saving must not show an epoch it then trains again."""
+    train, _ = stores
+    seen = []
+    save_state = RunFolder.save_state
+
+    def spy(self, model, optimizer, state):
+        seen.append((state.epoch, len(self.read_log())))
+        save_state(self, model, optimizer, state)
+
+    monkeypatch.setattr(RunFolder, "save_state", spy)
+    train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.epochs": "2"}), train, log=print)
+    assert all(logged in (epoch - 1, epoch) for epoch, logged in seen), seen
+    assert {epoch for epoch, logged in seen if logged == epoch - 1} == {1, 2}, seen  # end-of-epoch saves
+
+
+def test_a_run_killed_between_its_state_and_its_log_gets_the_record_back(tmp_path):
+    run = RunFolder(tmp_path / "run")
+    run.start(CONFIG)
+    first, second = {"epoch": 1, "train": {"loss": 2.0}}, {"epoch": 2, "train": {"loss": 1.0}}
+    run.log(first)
+    run.checkpoint_dir.mkdir()
+    meta = run.checkpoint_dir / "meta.json"
+    meta.write_text(json.dumps({"kind": "gsmn", "metrics": second}))
+    run.settle_log(2)  # state saved at 2 epochs, the log one short: the checkpoint (written first) has it
+    assert run.read_log() == [first, second]
+    run.settle_log(2)
+    assert run.read_log() == [first, second]  # nothing twice
+    run.settle_log(1)  # a log written ahead of its state (older code): trimmed, the epoch trained again
+    assert run.read_log() == [first]
+    meta.write_text(json.dumps({"kind": "gsmn", "metrics": {"epoch": 5}}))
+    run.settle_log(2)  # a checkpoint of another epoch is not this record
+    assert run.read_log() == [first]
+    meta.write_bytes(b"\x00\xff{")
+    run.settle_log(2)  # damaged: nothing to take back, nothing lost
+    assert run.read_log() == [first]
+
+
 def test_dagger_resumed_without_its_dataset_refills_it_from_the_current_mixture(stores, supervised_checkpoint,
                                                                                  tmp_path):
     """The run's state survives (restored on a new machine), its episodes do not: before the next iteration the run

@@ -193,7 +193,7 @@ def _resume(run_dir: Path | str, init: Path, config: RunConfig, log: Logger,
     if world.main:
         model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
         state = TrainState(epoch=0, extra={"phase": "start"}) if state is None else state
-        run.trim_log(state.epoch)
+        run.settle_log(state.epoch)
     else:  # the weights, Adam and counters come from rank 0's saved state (`_follow`)
         model, vocabulary, optimizer = make_model_and_optimizer(kind, config, init)
     return _Run(run, config, world, model, vocabulary, optimizer, state, dataset, log, on_progress,

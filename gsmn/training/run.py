@@ -176,12 +176,25 @@ class RunFolder:
             return []
         return [json.loads(line) for line in self.log_path.read_text().splitlines() if line.strip()]
 
-    def trim_log(self, epochs: int) -> None:
-        """Keep the first `epochs` records: a run killed after logging but before saving its state logs that
-        epoch again when it resumes."""
+    def settle_log(self, epochs: int) -> None:
+        """One record per saved epoch, as the run resumes with `epochs` saved. An epoch is logged after its state is
+        saved, so a run killed between the two gets that record back from its checkpoint's meta.json (written
+        before the state); records beyond `epochs` (a log written by older code before its state) are dropped,
+        and those epochs logged again when they are trained again."""
         records = self.read_log()
-        if len(records) > epochs:
-            _write_atomic(self.log_path, "".join(json.dumps(r) + "\n" for r in records[:epochs]))
+        if len(records) == epochs - 1:
+            try:
+                meta = json.loads((self.checkpoint_dir / "meta.json").read_text())
+            except (OSError, ValueError):
+                meta = {}
+            metrics = meta.get("metrics") or {}
+            if metrics.get("iteration", metrics.get("epoch")) == epochs:
+                records.append(metrics)
+        elif len(records) > epochs:
+            records = records[:epochs]
+        else:
+            return
+        _write_atomic(self.log_path, "".join(json.dumps(r) + "\n" for r in records))
 
 
 @dataclass(frozen=True)

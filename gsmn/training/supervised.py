@@ -263,12 +263,12 @@ def finish_epoch(run: RunFolder, model: Model, optimizer: torch.optim.Optimizer,
         record["mirror"] = config.train.mirror
     if dev_store is not None and len(dev_store):
         record["dev"] = validate(model, dev_store, vocabulary, config, config.train.batch_size)
-    run.log(record)
     log(_summary_line(record))
     save_checkpoint(run.checkpoint_dir, model, config, vocabulary, meta={"step": state.step, "metrics": record},
                     optimizer_state=optimizer.state_dict())
     state.epoch, state.batch, state.sums, state.counts = state.epoch + 1, 0, {}, {}
     run.save_state(model, optimizer, state)
+    run.log(record)  # last: a record in the log is an epoch saved, which a monitor may show as kept
     distributed.barrier(world)
 
 
@@ -298,7 +298,7 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
     model, vocabulary, optimizer, state = start_or_resume(run, kind, config, init, init_optimizer)
     state = TrainState() if state is None else state
     if world.main:
-        run.trim_log(state.epoch)
+        run.settle_log(state.epoch)
     keys = train_store.keys()
     if not keys:
         raise ValueError(f"no episodes in {train_store.root}; collect some with `gsmn collect`")
