@@ -107,9 +107,18 @@ class LocalExecutor(Executor):
         return self._pool.map(partial(_pool_call, fn, shared), jobs)
 
     def close(self) -> None:
-        if self._pool is not None:  # finish the jobs in flight, start no more
-            self._pool.shutdown(cancel_futures=True)
-            self._pool = None
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        try:
+            pool.shutdown(cancel_futures=True)  # finish the jobs in flight, start no more
+        except BaseException:
+            # Interrupted again while waiting (a second SIGTERM or Ctrl-C): end the workers now. Left alone, the
+            # pool's manager thread and its idle workers keep the process from exiting. The jobs in flight are
+            # lost; their results are written atomically, so nothing part-written is left.
+            for process in list((pool._processes or {}).values()):  # no public way before Python 3.14
+                process.terminate()
+            raise
 
 
 # -- probes (scripts/bench_executors.py) -----------------------------------------------------------

@@ -3,6 +3,7 @@ command that runs worker processes without leaving them behind."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -67,10 +68,14 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.slow
-def test_sigterm_stops_collect_and_its_workers(tmp_path):
+@pytest.mark.parametrize("signals", [1, 2])
+def test_sigterm_stops_collect_and_its_workers(tmp_path, signals):
     """SIGTERM to `gsmn collect` (2 workers, 40 episodes) after its first episode: it exits with 128 + 15 soon,
-    without flying the rest, its worker processes are gone, and the episodes written are whole (they load)."""
+    without flying the rest, its worker processes are gone, and the episodes written are whole (they load). A second
+    SIGTERM while it finishes the episodes in flight (a supervisor and a user both stopping it) ends the workers
+    at once instead of leaving the command waiting on them forever."""
     store = tmp_path / "store"
+    workers = []
     proc = subprocess.Popen([sys.executable, "-m", "gsmn.cli", "collect", "--preset", "tiny", "--out", str(store),
                              "--env-ids", "0:40", "--workers", "2", "--task.horizon", "20"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -82,10 +87,16 @@ def test_sigterm_stops_collect_and_its_workers(tmp_path):
         workers = [c for c in _children(proc.pid) if "spawn_main" in (Path("/proc") / str(c) / "cmdline").read_text()]
         assert len(workers) == 2
         proc.send_signal(signal.SIGTERM)
+        if signals == 2:
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=60) == 128 + signal.SIGTERM
     finally:
-        if proc.poll() is None:
-            proc.kill()
+        if proc.poll() is None:  # hung: leave no process of it behind
+            for pid in [*workers, proc.pid]:
+                if _alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+            proc.wait()
     deadline = time.monotonic() + 10
     while any(_alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
