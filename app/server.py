@@ -131,11 +131,11 @@ class Dashboard:
         """`keep_mb`: the retention limit of kept episodes (app.jobs.kept; None: its default). `token`: the token
         requests must carry ("" makes one; None: $GSMN_TOKEN, else one only when `host`
         is not loopback)."""
-        import torch
+        from gsmn.model.runtime import set_torch_threads
 
         # One thread: the runner does one small step at a time, and on a busy machine two threads spin
         # against each other (measured: an inference step went from 8 ms to 200-500 ms under load).
-        torch.set_num_threads(torch_threads)
+        set_torch_threads(torch_threads)
         # the record first: a damaged or empty one is refused (naming it) before the simulator starts
         self.jobs = JobManager(data_dir, config, self.resolve_checkpoint, max_runs=max_runs,
                                max_evaluations=max_evaluations, checkpoints_root=checkpoints_root)

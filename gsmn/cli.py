@@ -202,9 +202,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if done:
             print(f"resuming: {len(done)} of {len(env_ids)} episodes kept in {partial.path}", file=sys.stderr)
     if args.threads is not None:
-        import torch
+        from gsmn.model.runtime import set_torch_threads
 
-        torch.set_num_threads(args.threads)
+        set_torch_threads(args.threads)
     progress = (ProgressLog(Path(args.progress), len(env_ids), config.task.success_radius) if args.progress
                 else None)
     if progress is not None:

@@ -143,9 +143,9 @@ def _init_worker(system: str, config: RunConfig, checkpoint: str | None, render:
                  threads: int | None = None, record_dir: str | None = None, mirror_ensemble: bool = False,
                  ensemble_with: Sequence[str] = (), intervention: Intervention | None = None) -> None:
     if threads is not None:
-        import torch
+        from gsmn.model.runtime import set_torch_threads
 
-        torch.set_num_threads(threads)
+        set_torch_threads(threads)
     _use(make_policy(system, config, checkpoint, mirror_ensemble, ensemble_with, intervention), config, render,
          record_dir)
 

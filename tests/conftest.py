@@ -9,6 +9,12 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    # Several workers share the cores: one torch thread in each process they start (gsmn.model.runtime; set before
+    # any test module imports torch), or their threads spin against each other.
+    os.environ.setdefault("GSMN_MAX_THREADS", "1")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("LP_NUM_THREADS", "1")  # Mesa's software renderer: one rasterizer thread, not one a core
 
 # The tiers (README.md, "Tests"). Every test module names its tier in a module-level `pytestmark`
 # (tests/test_structure.py checks it): `unit` for unit, contract and golden tests, or what makes it heavy.

@@ -736,3 +736,22 @@ def test_the_pooled_skip_is_avg_pool2d_with_or_without_gradients(stride, channel
     out.backward(grad)
     expected.backward(grad)
     torch.testing.assert_close(a.grad, b.grad, rtol=1e-5, atol=1e-6)
+
+
+def test_the_torch_threads_a_process_asks_for_are_capped_by_gsmn_max_threads(monkeypatch):
+    from gsmn.model.runtime import set_torch_threads
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("GSMN_MAX_THREADS", "1")
+        assert set_torch_threads(2) == 1 == torch.get_num_threads()
+        monkeypatch.setenv("GSMN_MAX_THREADS", "4")
+        assert set_torch_threads(2) == 2 == torch.get_num_threads()
+        monkeypatch.delenv("GSMN_MAX_THREADS")
+        assert set_torch_threads(3) == 3 == torch.get_num_threads()
+        for bad in ("0", "two", "-1"):
+            monkeypatch.setenv("GSMN_MAX_THREADS", bad)
+            with pytest.raises(ValueError, match="GSMN_MAX_THREADS must be a positive integer"):
+                set_torch_threads(1)
+    finally:
+        torch.set_num_threads(before)

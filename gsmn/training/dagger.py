@@ -39,6 +39,7 @@ from gsmn.config import RunConfig
 from gsmn.executor import Executor, ExecutorOptions, make_executor, open_shared, shared_key
 from gsmn.model.checkpoint import load_policy, read_checkpoint_kind, save_checkpoint, with_model_of
 from gsmn.model.policy import MirrorEnsemble
+from gsmn.model.runtime import set_torch_threads
 from gsmn.model.vocabulary import Vocabulary
 from gsmn.task.rollout import task_for_env
 from gsmn.training import distributed
@@ -73,7 +74,7 @@ _worker: dict = {}
 
 
 def _init_worker(config: RunConfig, dataset_root: str, policy_dir: str) -> None:
-    torch.set_num_threads(1)
+    set_torch_threads(1)
     _worker.update(config=config, env=Env(config), store=EpisodeStore(dataset_root), policy_dir=policy_dir,
                    iteration=None, learner=None)
 
@@ -178,7 +179,7 @@ def _resume(run_dir: Path | str, init: Path, config: RunConfig, log: Logger,
             on_progress: Progress | None, init_optimizer: bool, executor_options: ExecutorOptions | None) -> _Run:
     """The run folder started (or found), and the model, vocabulary and Adam of `init` or of the run's saved state:
     rank 0 reads that state (a new run starts at phase "start"); the other ranks follow it later (`_follow`)."""
-    torch.set_num_threads(config.train.threads)
+    set_torch_threads(config.train.threads)
     kind = read_checkpoint_kind(init)  # first: a folder that is no checkpoint gets the clearest message
     config = with_model_of(config, init)
     world = distributed.init(config.train.device)

@@ -26,6 +26,7 @@ from gsmn.model.checkpoint import CheckpointError, load_checkpoint, load_optimiz
 from gsmn.model.fpv import freeze_all_but_memory
 from gsmn.model.losses import compute_losses
 from gsmn.model.models import Model, build_model, forward_batch
+from gsmn.model.runtime import set_torch_threads
 from gsmn.model.vocabulary import Vocabulary
 from gsmn.training import distributed
 from gsmn.training.augment import maybe_mirror
@@ -286,7 +287,7 @@ def train_supervised(run_dir: Path | str, kind: str, config: RunConfig, train_st
 
     Started by torchrun with several processes, each is one rank of a data-parallel run
     (`gsmn.training.distributed`): rank 0 alone writes the run folder, which every rank must see."""
-    torch.set_num_threads(config.train.threads)
+    set_torch_threads(config.train.threads)
     world = distributed.init(config.train.device)
     if init is not None:
         config = with_model_of(config, init)
