@@ -31,6 +31,7 @@ from safetensors.torch import load_file, save_file
 from gsmn.config import RunConfig
 from gsmn.model.checkpoint import (
     OPTIMIZER_FILE,
+    checkpoint_iteration,
     cpu_weights,
     optimizer_file,
     read_optimizer_state,
@@ -184,12 +185,11 @@ class RunFolder:
         records = self.read_log()
         if len(records) == epochs - 1:
             try:
-                meta = json.loads((self.checkpoint_dir / "meta.json").read_text())
-            except (OSError, ValueError):
-                meta = {}
-            metrics = meta.get("metrics") or {}
-            if metrics.get("iteration", metrics.get("epoch")) == epochs:
-                records.append(metrics)
+                meta = (self.checkpoint_dir / "meta.json").read_text()
+                if checkpoint_iteration(meta) == epochs:
+                    records.append(json.loads(meta)["metrics"])
+            except (OSError, ValueError, AttributeError):
+                pass  # no checkpoint of that epoch to take the record from: it stays one short
         elif len(records) > epochs:
             records = records[:epochs]
         else:
