@@ -400,7 +400,8 @@ def test_an_epoch_is_logged_only_once_its_state_is_saved(stores, tmp_path, monke
         save_state(self, model, optimizer, state)
 
     monkeypatch.setattr(RunFolder, "save_state", spy)
-    train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.epochs": "2"}), train, log=print)
+    train_supervised(tmp_path / "run", "gsmn", with_overrides(CONFIG, {"train.epochs": "2"}), train,
+                     log=lambda s: None)
     assert all(logged in (epoch - 1, epoch) for epoch, logged in seen), seen
     assert {epoch for epoch, logged in seen if logged == epoch - 1} == {1, 2}, seen  # end-of-epoch saves
 
