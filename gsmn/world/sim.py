@@ -220,8 +220,10 @@ class DroneController:
 
     def __call__(self, qpos: np.ndarray, qvel: np.ndarray, v_cmd: float, omega_cmd: float) -> np.ndarray:
         """(thrust, torque x, y, z). Written on Python floats, not 3-vectors: it runs 40 times a step, where numpy's
-        per-call cost made it a fifth of a live step; the arithmetic is numpy's, term for term, so the result is
-        the same to the bit (tests/test_world.py keeps the vector form as the reference)."""
+        per-call cost made it a fifth of a live step. The arithmetic is the vector form's, term for term
+        (tests/test_world.py keeps that form as the reference); Python floats never fuse a multiply and an add,
+        so these bits are the same on every CPU, where numpy's products (OpenBLAS) may fuse them on one with FMA
+        and differ from the float form in the last bits of rounding."""
         c = self.config
         R = quat_to_R(qpos[3:7])  # R_world_body
         yaw = yaw_of(R)
