@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -32,6 +33,7 @@ from gsmn.task.metrics import (
     success,
     summarize,
 )
+from gsmn.task.rollout import task_for_text
 from gsmn.task.understand import parse_instruction
 from gsmn.world.landmarks import CATALOGUE
 from gsmn.world.spec import LandmarkSpec, WorldSpec, start_pose, world_for_env
@@ -281,6 +283,30 @@ def test_parse_rejects_with_clear_messages(barrels_world):
         parse_instruction("left side of the rock barrel", barrels_world)
     with pytest.raises(InstructionError, match="empty"):
         parse_instruction(" !? ", barrels_world)
+
+
+def test_a_typed_instruction_becomes_a_task_with_its_path_or_a_straight_line(barrels_world):
+    """gsmn.task.rollout.task_for_text, the one builder of a task from typed text (the dashboard's runner wraps its
+    errors): the planner's path to the goal; where there is none, a DemoPathError for the expert, or a straight
+    line from the start to the goal for a model; text that names no instruction is an InstructionError."""
+    config = preset("tiny")
+    task = task_for_text(barrels_world, "go to the left side of the red barrel", config)
+    assert task.instruction == make_instruction(barrels_world, 1, "left")
+    assert np.array_equal(task.path, demonstration_path(barrels_world, task.instruction.goal, config.expert))
+    no_path = dataclasses.replace(config, expert=dataclasses.replace(config.expert, max_demo_steps=2))
+    with pytest.raises(DemoPathError, match="did not reach the goal"):
+        task_for_text(barrels_world, "go to the left side of the red barrel", no_path)
+    straight = task_for_text(barrels_world, "go to the left side of the red barrel", no_path, need_path=False)
+    assert straight.instruction == task.instruction
+    assert straight.path[0] == pytest.approx(barrels_world.start_position)
+    assert straight.path[-1] == pytest.approx(task.instruction.goal)
+    assert len(straight.path) > 2 and not np.array_equal(straight.path, task.path)
+    directions = np.diff(straight.path, axis=0)
+    cross = directions[:, 0] * directions[0, 1] - directions[:, 1] * directions[0, 0]
+    assert np.allclose(cross, 0.0, atol=1e-9), "one straight line"
+    assert np.all(np.linalg.norm(directions, axis=1) <= config.expert.waypoint_spacing + 1e-9)
+    with pytest.raises(InstructionError, match="no side named"):
+        task_for_text(barrels_world, "go to the red barrel", config, need_path=False)
 
 
 # ------------------------------------------------------------------------------------ demonstrations

@@ -17,10 +17,11 @@ from app.live.commands import RunnerError
 from app.live.recording import Episode, StepMaps
 from gsmn.config import RunConfig
 from gsmn.task.baselines import ExpertPolicy
-from gsmn.task.demo import DemoPathError, demonstration_path, resample
+from gsmn.task.demo import DemoPathError
 from gsmn.task.edits import EditError, edit_world, edited_task
 from gsmn.task.instructions import Instruction, InstructionError
 from gsmn.task.rollout import PolicyAction, Task, task_for_env
+from gsmn.task.rollout import task_for_text as text_task
 from gsmn.task.understand import parse_instruction
 from gsmn.world.env import Observation
 from gsmn.world.spec import WorldSpec, world_for_env
@@ -89,10 +90,6 @@ def flight_for(episode: Episode, model, config: RunConfig) -> Flight:
     return Flight(episode, policy, watcher, carrier, expert)
 
 
-def straight_task(world: WorldSpec, instruction: Instruction, spacing: float) -> Task:
-    return Task(world, instruction, resample(np.stack([world.start_position, instruction.goal]), spacing))
-
-
 def instruction_for_text(world: WorldSpec, text: str) -> Instruction:
     """The instruction typed text gives in `world` (`gsmn.task.understand`), or why it gives none."""
     try:
@@ -102,16 +99,14 @@ def instruction_for_text(world: WorldSpec, text: str) -> Instruction:
 
 
 def task_for_text(world: WorldSpec, text: str, config: RunConfig, need_path: bool = False) -> Task:
-    """The task typed text asks for in `world`: its instruction (`gsmn.task.understand`) and the demonstration path
-    to its goal, or a straight line where the planner finds none (with `need_path`, for the expert who follows the
-    path, an error instead)."""
-    instruction = instruction_for_text(world, text)
+    """`gsmn.task.rollout.task_for_text` with its errors as the runner's: a straight line where the planner finds no
+    path, unless `need_path` (for the expert who follows the path): then an error."""
     try:
-        return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+        return text_task(world, text, config, need_path)
+    except InstructionError as e:
+        raise RunnerError(str(e)) from e
     except DemoPathError as e:
-        if need_path:
-            raise RunnerError(f"the expert has no path to that goal ({e}); try another side") from e
-        return straight_task(world, instruction, config.expert.waypoint_spacing)
+        raise RunnerError(f"the expert has no path to that goal ({e}); try another side") from e
 
 
 def task_for_start(env_id: int, text: str | None, config: RunConfig, need_path: bool,

@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from gsmn.config import RunConfig
-from gsmn.task.demo import DemoPathError, demonstration_path
+from gsmn.task.demo import DemoPathError, demonstration_path, resample
 from gsmn.task.instructions import Instruction, rng_for_instruction, sample_instruction
 from gsmn.task.metrics import goal_distance, landmark_success, success
 from gsmn.task.understand import parse_instruction
@@ -46,10 +46,23 @@ def task_for_env(env_id: int, config: RunConfig) -> Task:
     raise DemoPathError(f"no demonstration path for any instruction of environment {env_id}")
 
 
-def task_for_text(world: WorldSpec, text: str, config: RunConfig) -> Task:
-    """A task from a typed instruction; raises InstructionError (user-readable) or DemoPathError."""
+def straight_task(world: WorldSpec, instruction: Instruction, spacing: float) -> Task:
+    """The instruction with a straight line from the start to its goal as the demonstration path."""
+    return Task(world, instruction, resample(np.stack([world.start_position, instruction.goal]), spacing))
+
+
+def task_for_text(world: WorldSpec, text: str, config: RunConfig, need_path: bool = True) -> Task:
+    """The task typed text asks for in `world`: its instruction (`gsmn.task.understand`; InstructionError, readable by
+    a user, where it gives none) and the demonstration path to its goal. Where the planner finds no path: a
+    DemoPathError with `need_path` (the expert follows the path), else a straight line to the goal (a model flies
+    without it; the path is only drawn and scored against)."""
     instruction = parse_instruction(text, world)
-    return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+    try:
+        return Task(world, instruction, demonstration_path(world, instruction.goal, config.expert))
+    except DemoPathError:
+        if need_path:
+            raise
+        return straight_task(world, instruction, config.expert.waypoint_spacing)
 
 
 @dataclass(frozen=True)
