@@ -70,6 +70,7 @@ class Presenter:
         self._framed: float | None = None  # the canvas's aspect the camera was framed for
         self._closing = False
         self._shown: tuple | None = None
+        self._lock = threading.RLock()  # the loop's framing and drawing against `set` on another thread
         gui = self.client.gui
         order = viewer.checkpoint_note.order + 0.01  # right under the title, above the Episode folder
         self.toggle = gui.add_checkbox("Presenter mode", False, order=order,
@@ -96,7 +97,11 @@ class Presenter:
         return [self.viewer.intro, *([truth] if truth is not None else [])]
 
     def set(self, on: bool) -> None:
-        """Presenter mode on or off, in this tab."""
+        """Presenter mode on or off, in this tab (waits for a frame the loop is drawing)."""
+        with self._lock:
+            self._set(on)
+
+    def _set(self, on: bool) -> None:
         if on == self.on and self.toggle.value == on:
             return
         self.on = on
@@ -171,9 +176,10 @@ class Presenter:
     def _loop(self) -> None:
         while not self._closing:
             try:
-                if self.on:
-                    self._frame()
-                    self._draw()
+                with self._lock:  # not between a set(False) and its camera put back: that would frame it again
+                    if self.on:
+                        self._frame()
+                        self._draw()
             except Exception:  # noqa: BLE001 - the page lives on
                 log.error("presenter card failed:\n%s", traceback.format_exc())
             time.sleep(0.25)
