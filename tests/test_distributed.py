@@ -45,6 +45,13 @@ def _torchrun(data: Path, run: Path, flags: dict) -> list[str]:
     return args
 
 
+def failure(stderr: str) -> str:
+    """What a failed torchrun says: a rank's Python stacks where it died of a signal (gsmn.training.distributed
+    enables faulthandler), then torchrun's report."""
+    fatal = stderr.find("Fatal Python error")
+    return (stderr[fatal:fatal + 4000] + "\n...\n" if fatal >= 0 else "") + stderr[-3000:]
+
+
 ENV = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}  # loopback only
 
 
@@ -59,7 +66,7 @@ def test_two_gloo_ranks_take_the_step_one_process_takes_on_the_same_global_batch
     flags = {**FLAGS, "train.epochs": "1"}
     run = subprocess.run(_torchrun(two.root, tmp_path / "ddp", flags), env=ENV, capture_output=True, text=True,
                          timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.returncode == 0, failure(run.stderr)
     assert len((tmp_path / "ddp" / "log.jsonl").read_text().splitlines()) == 1  # rank 0 alone logs
 
     config = with_overrides(preset("tiny"), flags)
@@ -92,7 +99,7 @@ def test_a_killed_two_rank_run_resumes_to_the_state_of_an_uninterrupted_one(stor
     flags = {**FLAGS, "train.epochs": "3", "train.save_every_seconds": "0"}
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     done = subprocess.run(_torchrun(train.root, whole, flags), env=ENV, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.returncode == 0, failure(done.stderr)
     proc = subprocess.Popen(_torchrun(train.root, killed, flags), env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)  # its own group: torchrun and ranks
     try:
@@ -111,7 +118,7 @@ def test_a_killed_two_rank_run_resumes_to_the_state_of_an_uninterrupted_one(stor
     assert json.loads((killed / "state" / "state.json").read_text())["epoch"] < 3
     resumed = subprocess.run(_torchrun(train.root, killed, flags), env=ENV, capture_output=True, text=True,
                              timeout=600)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert resumed.returncode == 0, failure(resumed.stderr)
     a = load_file(whole / "checkpoint" / "weights.safetensors")
     b = load_file(killed / "checkpoint" / "weights.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
@@ -133,7 +140,7 @@ def test_dagger_on_two_ranks_flies_on_rank_0_and_trains_on_both(stores, tmp_path
     args = _torchrun(train.root, tmp_path / "dagger", flags)
     args[args.index("supervised")] = "dagger"
     run = subprocess.run(args + ["--init", str(init)], env=ENV, capture_output=True, text=True, timeout=900)
-    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.returncode == 0, failure(run.stderr)
     log = [json.loads(x) for x in (tmp_path / "dagger" / "log.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2] and all(r["dataset"] == 3 for r in log)
     dataset = EpisodeStore(tmp_path / "dagger" / "dataset")
