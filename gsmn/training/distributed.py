@@ -78,8 +78,8 @@ def init(device: str) -> World:
     process's World. Collecting DAgger rollouts on rank 0 may take long: the others wait up to a day."""
     world = from_environment()
     if world.size > 1 and not dist.is_initialized():
-        # a rank that dies of a signal (gloo's C++ threads abort: docs/training.md) prints where each of its Python
-        # threads was, into torchrun's report of the failure
+        # a rank that dies of a signal (as a gloo rank aborted at the end of a run: docs/scale.md) prints where each
+        # of its Python threads was, into torchrun's report of the failure
         faulthandler.enable(all_threads=True)
         backend = "nccl" if device.startswith("cuda") else "gloo"
         if backend == "nccl":
