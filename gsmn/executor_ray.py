@@ -7,7 +7,8 @@ of the jobs. An actor whose process dies (killed, its node lost) is restarted by
 retried (`max_restarts`, `max_task_retries`), so every job gives exactly one result.
 
 Shared folders (DAggerFM's policy checkpoint) are put in the object store once per `share` and fetched by each
-actor once, into a private folder of its process.
+actor once, into a private folder of its process, removed when the executor closes (an actor killed otherwise
+leaves its last folder in its node's temporary directory).
 
 The initializer and job functions are sent by name (module and function) and imported in the actor only after
 the driver's rendering settings (MUJOCO_GL, PYOPENGL_PLATFORM) are in its environment: MuJoCo reads them when it
@@ -29,6 +30,7 @@ from gsmn.executor_base import Executor, call_job, open_shared
 
 RETRIES = 3  # restarts of a dead actor, and retries of the job it was running
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "EGL_DEVICE_ID")
+RELEASE_SECONDS = 30  # at close: how long the actors get to remove their shared folders
 
 
 def _name(fn: Callable) -> tuple[str, str]:
@@ -53,6 +55,10 @@ class EpisodeWorker:
     def pid(self) -> int:
         return os.getpid()
 
+    def release(self) -> None:
+        """Remove the shared folder this actor fetched last (`RayExecutor.close`, before the actor is killed)."""
+        release_shared(_opened)
+
 
 class SharedFolder:
     """A folder's files in Ray's object store. The reference sits inside this object so that Ray does not fetch
@@ -70,13 +76,18 @@ class SharedFolder:
 _opened: dict = {}  # in an actor: the folder of the handle it fetched last, by its key
 
 
+def release_shared(opened: dict) -> None:
+    """Remove the folders in `opened` (fetched by `fetch_shared`) from this process's disk."""
+    for old in opened.values():
+        shutil.rmtree(old, ignore_errors=True)
+    opened.clear()
+
+
 def fetch_shared(handle: SharedFolder, opened: dict) -> Path:
     """The folder of `handle` in this actor's process: fetched and written once, the previous one removed."""
     if handle.key not in opened:
         files: dict[str, bytes] = ray.get(handle.ref)
-        for old in opened.values():
-            shutil.rmtree(old, ignore_errors=True)
-        opened.clear()
+        release_shared(opened)
         folder = Path(tempfile.mkdtemp(prefix="gsmn-shared-"))
         for name, data in files.items():
             (folder / name).write_bytes(data)
@@ -145,6 +156,10 @@ class RayExecutor(Executor):
 
     def close(self) -> None:
         if self._actors is not None:
+            try:  # each actor's shared folder off its node's disk first; an actor already dead has none to remove
+                ray.get([actor.release.remote() for actor in self._actors], timeout=RELEASE_SECONDS)
+            except ray.exceptions.RayError:  # a timeout included
+                pass
             for actor in self._actors:
                 ray.kill(actor, no_restart=True)
             self._actors = None

@@ -46,7 +46,9 @@ def cluster():
     processes down with it; yields the environment a client command runs with."""
     temp = tempfile.mkdtemp(prefix="gsr")  # short: Ray's socket paths live under it
     port = _free_port()
-    env = {**os.environ, **LOOPBACK, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    scratch = Path(temp) / "tmp"  # the temporary directory of the cluster's processes (and of the client commands)
+    scratch.mkdir()
+    env = {**os.environ, **LOOPBACK, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "TMPDIR": str(scratch)}
     head = subprocess.Popen([str(RAY), "start", "--head", "--block", "--port", str(port), "--node-ip-address",
                              "127.0.0.1", "--num-cpus", "2", "--object-store-memory", str(200 * 2**20),
                              "--include-dashboard=false", "--disable-usage-stats", "--temp-dir", temp],
@@ -170,7 +172,8 @@ def test_collect_on_ray_writes_the_local_pools_episodes_and_skips_what_exists(cl
 
 def test_a_dagger_iteration_with_ray_rollouts_finishes(cluster, stores, tmp_path):
     """One DAggerFM iteration (2 rollouts of the mixture policy, its weights through Ray's object store) on the
-    cluster: the dataset holds M episodes, the 2 rollouts among them, and the iteration is logged."""
+    cluster: the dataset holds M episodes, the 2 rollouts among them, and the iteration is logged; the copies of
+    the weights the actors fetched are off their disk once the run ends."""
     from gsmn.training.supervised import train_supervised
 
     train, _ = stores
@@ -190,3 +193,4 @@ def test_a_dagger_iteration_with_ray_rollouts_finishes(cluster, stores, tmp_path
     rollouts = [k for k in dataset.keys() if k.startswith("dagger_0001_")]
     assert len(dataset) == 3 and len(rollouts) == 2
     assert all(dataset.read_meta(k)["iteration"] == 1 for k in rollouts)
+    assert not list(Path(cluster["TMPDIR"]).glob("gsmn-shared-*")), "an actor's copy of the shared weights is left"
