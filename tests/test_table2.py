@@ -27,7 +27,7 @@ from gsmn.experiments.recipe import (
     read_stage,
     system_configs,
 )
-from gsmn.experiments.table import orderings_markdown, pending, table1_markdown, table_markdown, wilson
+from gsmn.experiments.table import interval, orderings_markdown, pending, table1_markdown, table_markdown
 from gsmn.model.losses import objectives_for
 from gsmn.task.metrics import sign_test
 from gsmn.training.store import EpisodeStore
@@ -123,7 +123,7 @@ def test_the_paired_figures_of_the_table():
     assert sign_test(0, 0) == 1.0
     assert abs(sign_test(10, 4) - 0.1796) < 1e-3  # the docs' example: 10 fixed against 4 broken
     assert sign_test(0, 10) < 0.002 and sign_test(5, 5) == 1.0
-    low, high = wilson(240, 300)
+    low, high = interval(240, 300)
     assert 75.0 < low < 75.2 and 84.0 < high < 84.2  # p 0.8 at n 300
 
 

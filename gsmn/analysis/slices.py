@@ -41,7 +41,7 @@ from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from gsmn.task.metrics import side_of, sign_test
+from gsmn.task.metrics import side_of, sign_test, wilson
 
 NO_LANDMARK = "no landmark"
 NOT_READ = "not read"  # a reading the evaluation has no maps (or no trained head) for
@@ -73,7 +73,6 @@ DISTANCE_BINS = (10.0, 20.0, 30.0)  # m: "under 10 m", "10-20 m", "20-30 m", "30
 DEMONSTRATION_BINS = (15.0, 25.0, 35.0)
 STEP_BINS = (20, 40, 60)
 MIN_SLICE = 5  # the versus table's combined slices: at least this many paired episodes
-Z95 = 1.959963984540054
 
 
 # -- per episode ----------------------------------------------------------------------------------------------------
@@ -233,16 +232,6 @@ def normalise(episode: Mapping[str, Any]) -> dict[str, Any]:
 
 
 # -- counting -------------------------------------------------------------------------------------------------------
-def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """The Wilson score interval of a rate (as fractions), (0, 1) for no episodes."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
 def rate_of(successes: int, n: int) -> dict[str, Any]:
     lo, hi = wilson(successes, n)
     return {"n": n, "successes": successes, "rate": round(100.0 * successes / n, 2) if n else None,

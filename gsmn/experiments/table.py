@@ -20,7 +20,7 @@ from gsmn.experiments.recipe import (
     trained,
     training_stage,
 )
-from gsmn.task.metrics import sign_test
+from gsmn.task.metrics import sign_test, wilson
 
 # -- the table ------------------------------------------------------------------------------------------------
 PAPER = {  # Table 2 of the paper (development results): success, landmark success, mean and median distance
@@ -32,14 +32,10 @@ PAPER = {  # Table 2 of the paper (development results): success, landmark succe
 }
 
 
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The 95 % Wilson interval of a binomial proportion, in percent."""
-    if n == 0:
-        return float("nan"), float("nan")
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5 / (1 + z * z / n)
-    return 100 * (centre - half), 100 * (centre + half)
+def interval(successes: int, n: int) -> tuple[float, float]:
+    """The 95 % Wilson interval of a success rate, in percent."""
+    low, high = wilson(successes, n)
+    return 100 * low, 100 * high
 
 
 def pending(ship: Path, split: str = "dev") -> str:
@@ -78,7 +74,7 @@ def table_markdown(ship: Path) -> str:
             lines.append(f"| {system.label} | {pending(ship / system.name)} | | | | {paper} | | |")
             continue
         s, eps = result["summary"], result["episodes"]
-        low, high = wilson(sum(e["success"] for e in eps), len(eps))
+        low, high = interval(sum(e["success"] for e in eps), len(eps))
         drop = ""
         if control is not None and system.name != SYSTEMS[0].name:
             fixed, broken = paired(control["episodes"], eps)
@@ -138,7 +134,7 @@ def modules_markdown(ship: Path) -> str:
             return pending(ship / name)
         eps = found[name]
         wins = sum(e["success"] for e in eps)
-        low, high = wilson(wins, len(eps))
+        low, high = interval(wins, len(eps))
         text = f"{100 * wins / len(eps):.1f} ({low:.1f}-{high:.1f})"
         if control is not None:
             fixed, broken = paired(control, eps)
