@@ -3,8 +3,9 @@
 Tab B opens an old episode by its link and scrubs it while tab A shows another world and flies a new episode:
 neither's timeline, episode or world moves the other's, B is told that an episode flies elsewhere, and tab C (once
 its "Show episodes started elsewhere" is ticked: a new tab starts unticked, on its own) watches A's. C showing a
-world mid-flight ends nobody's episode and moves nobody else, and its "Watch episode N" goes back to it. The pace,
-set in code or chosen in one tab, shows in every tab's Speed box. A tab that closes leaves the runner's listeners."""
+world mid-flight ends nobody's episode and moves nobody else, and its "Watch episode N" goes back to it, even when
+the click reaches the tab only after N landed. The pace, set in code or chosen in one tab, shows in every tab's Speed
+box. A tab that closes leaves the runner's listeners."""
 
 from __future__ import annotations
 
@@ -15,8 +16,9 @@ import pytest
 from browser_support import until
 
 from app.browser import field
-from app.live.commands import SetSpeed, StartEpisode
+from app.live.commands import Resume, SetSpeed, StartEpisode
 from app.page.controls import speed_choice
+from app.page.events import WatchLive
 
 pytestmark = pytest.mark.browser
 
@@ -151,4 +153,27 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
           timeout=15)
     until(lambda: not viewer_c.thread.is_alive(), what="tab C's UI thread to end", timeout=15)
     assert len([x for x in dashboard.runner.listeners if x in (tab_a.viewer, tab_b.viewer)]) == 2
+    context.close()
+
+
+def test_watch_episode_pressed_as_it_lands_shows_it_landed(dashboard, browser):
+    """"Watch episode N" pressed while N flies elsewhere, the click reaching the tab only after N landed (on a busy
+    machine the tab's queue lags; the button is gone by then): the tab shows N at its last step, with its result,
+    where it used to do nothing."""
+    before = set(dashboard.tabs)
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    page = context.new_page()
+    page.set_default_timeout(60_000)
+    page.goto(dashboard.urls.page)
+    tab = until(lambda: next((t for k, t in dashboard.tabs.items() if k not in before), None), what="the tab")
+    episode = dashboard.runner.call(StartEpisode(72, None, "expert", None, paused=True))  # over the API
+    button = page.get_by_role("button", name=f"Watch episode {episode.id}")
+    button.wait_for()
+    dashboard.runner.call(Resume())
+    until(lambda: not episode.live, what="the episode to land", timeout=120)
+    button.wait_for(state="hidden")
+    tab.viewer._events.put(WatchLive())  # the click that was on its way
+    last = len(episode.steps) - 1
+    until(lambda: shown(page) == {"episode": episode.id, "step": last}, what="the landed episode at its last step")
+    page.get_by_text(f"Episode {episode.id} (finished)").first.wait_for()
     context.close()

@@ -143,6 +143,7 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         field, cells = runner.config.world.field_size, runner.config.model.map_size
         self._cell_of = lambda x, y: world_cell(x, y, field, cells)
         self._elsewhere_id: int | None = None  # the episode flying elsewhere that this tab does not show
+        self._watch_target: int | None = None  # the episode "Watch episode N" names, kept once it lands
         self._env_timer = None  # shows a typed environment id's world once the typing pauses (app.page.controls)
         self._last_run = 0.0  # when Run was last pressed (perf_counter)
         self._build_controls(env_id)
@@ -238,8 +239,8 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
                 return False
             case EpisodeStarted(episode, opened):
                 return self._episode_started(episode, opened)
-            case WatchLive():
-                return self._watch_live()
+            case WatchLive():  # the button: its episode even if it landed while the click was on its way
+                return self._watch_live(landed_too=True)
             case WatchSet():  # ticked: the episode flying now shows at once
                 return self.watching() and self._watch_live()
             case StepRecorded(episode):
@@ -385,14 +386,17 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         if live is not None:  # still flying, unseen here (this tab's own, or another's): say so, with a way back
             self._started_elsewhere(live)
 
-    def _watch_live(self) -> bool:
-        """Show the episode flying now, at its newest step; False when there is none or it is shown already."""
+    def _watch_live(self, landed_too: bool = False) -> bool:
+        """Show the episode flying now, at its newest step (`landed_too`: else the one the button named, landed
+        since, at its end); False when there is none or it is shown already."""
         live = self.runner.live
+        if live is None and landed_too and self._watch_target is not None:
+            live = self.runner.episodes.get(self._watch_target)
         if live is None or live is self.view.episode:
             return False
         self._start(live)
         self.view.cursor = max(0, len(live.steps) - 1)
-        return True
+        return live.live or self._episode_ended(live)
 
     def _started_elsewhere(self, episode: Episode | None) -> None:
         """Say (or stop saying) that an episode flies that this tab does not show (another tab's, the API's, or its
@@ -408,6 +412,7 @@ class Viewer(ViewerControls, ViewerDrawing, RunnerListener):
         self.elsewhere.content = (f"<small>Episode {episode.id} is {where}: one simulator flies for every tab. "
                                   f"*Watch it* shows it here; so does ticking **{WATCH_LABEL}** (Playback) for every "
                                   "new one.</small>")
+        self._watch_target = episode.id
         self.watch_live.label = f"Watch episode {episode.id}"
         self.elsewhere.visible = self.watch_live.visible = True
 
