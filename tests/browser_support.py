@@ -7,7 +7,7 @@ Like the tests that use them these fail, not skip, without Playwright or a Chrom
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import playwright.sync_api as playwright_api
@@ -70,3 +70,15 @@ def choose(page, label: str, option: str) -> None:
 
     field(page, label).click()
     page.get_by_role("option", name=option, exact=True).click()
+
+
+def scrub_home_until(page, read: Callable[[Any], Any], done: Callable[[Any], Any], what: str) -> Any:
+    """Press Home on the page's first slider until `done(read(page))`: the tab draws the steps it has queued (an
+    episode's last ones, its end) after the key, each setting the slider back to the end on a busy machine; it
+    applies its events in order, so once `done` holds nothing older is on its way. Returns the last reading."""
+    def home() -> Any:
+        page.get_by_role("slider").first.focus()
+        page.keyboard.press("Home")
+        return read(page)
+
+    return poll(home, done, what, every=0.5)

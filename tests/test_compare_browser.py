@@ -65,14 +65,8 @@ def newest(before: set[int], dashboard):
 
 
 def scrub_home(page) -> None:
-    """Scrub to step 0, and again until the page shows it: the runner ends an episode before the tab has drawn its
-    last steps, and a step drawn after the key moves the slider back to the end (a busy machine)."""
-    def home() -> dict:
-        page.get_by_role("slider").first.focus()
-        page.keyboard.press("Home")
-        return state(page)
-
-    browser_support.poll(home, lambda s: s["step"] == "0", "the cursor at step 0", every=0.5)
+    """Scrub to step 0 (the runner ends an episode before the tab has drawn its last steps)."""
+    browser_support.scrub_home_until(page, state, lambda s: s["step"] == "0", "the cursor at step 0")
 
 
 def test_two_checkpoints_side_by_side_scrubbed_step_by_step(dashboard, page):

@@ -127,14 +127,8 @@ def test_each_tab_has_its_own_timeline_episode_and_world(dashboard, browser):
     until(lambda: b.get_by_text("is flying, started in another tab").count() == 0
           or not b.get_by_text("is flying, started in another tab").first.is_visible(), what="B's note to go")
 
-    # and A scrubbing back leaves B where it is (Home again until A shows step 0: a step A draws after the key, its
-    # episode's end included, sets its slider back to the end)
-    def home() -> dict:
-        a.get_by_role("slider").first.focus()
-        a.keyboard.press("Home")
-        return shown(a)
-
-    browser_support.poll(home, lambda s: s == {"episode": new, "step": 0}, "A back at step 0", every=0.5)
+    # and A scrubbing back leaves B where it is
+    browser_support.scrub_home_until(a, shown, lambda s: s == {"episode": new, "step": 0}, "A back at step 0")
     time.sleep(0.5)
     assert shown(b) == {"episode": old.id, "step": 7}
 
