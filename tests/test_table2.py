@@ -484,6 +484,20 @@ def test_a_row_not_yet_measured_says_where_its_system_stands(tmp_path):
     assert "| GSMN, Table 2's recipe | not yet (DAggerFM iteration 7 of 15) |" in table1
 
 
+def test_a_system_without_maps_has_its_failures_marked_not_attributed_not_counted_as_none(tmp_path):
+    """GS-FPV has no map to attribute: its row says so instead of a zero at every stage."""
+    for name, stages in (("gsmn", ["goal", None]), ("gs-fpv", [None, None])):
+        episodes = [{"env_id": 85 + i, "success": stage is None and name == "gsmn", "stage": stage}
+                    for i, stage in enumerate(stages)]
+        summary = {"success": 50.0 if name == "gsmn" else 0.0, "landmark_success": 50.0, "mean_distance": 3.0,
+                   "median_distance": 3.0}
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "evaluation.json").write_text(json.dumps({"summary": summary, "episodes": episodes}))
+    rows = {line.split(" | ")[0]: line for line in table_markdown(tmp_path).splitlines() if line.startswith("| GS")}
+    assert rows["| GSMN"].endswith("| 0, 0, 1, 0 |")
+    assert rows["| GS-FPV"].endswith("| not attributed (no maps) |")
+
+
 def test_table1_rows_stand_beside_the_papers_with_the_paired_comparison(tmp_path):
     """Table 1's rows of the control and -J_plan in docs/results.md's columns, the paper's figures by model kind
     (-J_plan's are the paper's GSMN - J_goal), and -J_plan's paired comparison over the same environments."""
