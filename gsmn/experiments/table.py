@@ -80,8 +80,9 @@ def table_markdown(ship: Path) -> str:
             fixed, broken = paired(control["episodes"], eps)
             drop = (f"{control['summary']['success'] - s['success']:+.1f} ({fixed} / {broken}, "
                     f"p {sign_test(fixed, broken):.2g})")
-        by_stage = (", ".join(str(counts[system.name].get(stage, 0)) for stage in stages) if counts[system.name]
-                    else "not attributed (no maps)" if not all(e["success"] for e in eps) else "")
+        unattributed = not counts[system.name] and not all(e["success"] for e in eps)  # e.g. GS-FPV: no maps
+        by_stage = ("not attributed (no maps)" if unattributed
+                    else ", ".join(str(counts[system.name].get(stage, 0)) for stage in stages))
         lines.append(f"| {system.label} | {s['success']:.1f} ({low:.1f}-{high:.1f}) | {s['landmark_success']:.1f} | "
                      f"{s['mean_distance']:.2f} | {s['median_distance']:.2f} | {paper} | {drop} | {by_stage} |")
     return "\n".join(lines)
